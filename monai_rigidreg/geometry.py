@@ -62,8 +62,7 @@ PARAM_NAMES: tuple[str, ...] = ("tx", "ty", "tz", "rx", "ry", "rz")
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 """Homogeneous flip between LPS and RAS (it is its own inverse)."""
 
-ArrayLike = Union[np.ndarray, Sequence[float]]
-TransformLike = Union[np.ndarray, sitk.Transform]
+ArrayLike = Union[np.ndarray, Sequence[float]]  # noqa: UP007 (runtime alias, Python 3.10 safe)
 
 
 # ---------------------------------------------------------------------------------------------------------------

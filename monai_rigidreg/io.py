@@ -1,0 +1,365 @@
+"""Reading, writing and resampling volumes and transforms with SimpleITK, and conversion to MONAI ``MetaTensor``.
+
+Everything here raises :class:`~monai_rigidreg.errors.InputError` (naming the file) for bad input, instead of
+letting a bare SimpleITK/GDCM traceback through, and refuses to overwrite outputs unless ``overwrite=True``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import SimpleITK as sitk
+import torch
+from monai.data import MetaTensor
+
+from monai_rigidreg.errors import InputError, OutputExistsError
+from monai_rigidreg.geometry import Grid, matrix_to_sitk, sitk_to_matrix
+
+__all__ = [
+    "VOLUME_SUFFIXES",
+    "TRANSFORM_SUFFIXES",
+    "load_volume",
+    "save_volume",
+    "check_volume",
+    "list_dicom_series",
+    "resample",
+    "write_transform",
+    "read_transform",
+    "sitk_to_metatensor",
+    "metatensor_to_sitk",
+    "check_output_path",
+    "grids_overlap",
+    "as_image",
+]
+
+logger = logging.getLogger(__name__)
+
+VOLUME_SUFFIXES = (".nii", ".nii.gz", ".mha", ".mhd", ".nrrd", ".nhdr", ".dcm")
+TRANSFORM_SUFFIXES = (".tfm", ".txt", ".h5", ".hdf5", ".mat")
+RIGID_TRANSFORM_TYPES = ("Euler3DTransform", "VersorRigid3DTransform", "Similarity3DTransform", "IdentityTransform")
+
+_INTERPOLATORS = {
+    "linear": sitk.sitkLinear,
+    "nearest": sitk.sitkNearestNeighbor,
+    "bspline": sitk.sitkBSpline,
+    "bspline3": sitk.sitkBSpline3,
+    "lanczos": sitk.sitkLanczosWindowedSinc,
+}
+
+
+def _suffix(path: Path) -> str:
+    name = path.name.lower()
+    return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
+
+
+def check_output_path(path: str | Path, overwrite: bool = False) -> Path:
+    """Return ``path`` as a ``Path`` after checking it may be written (parent created, no clobbering)."""
+    p = Path(path)
+    if p.exists() and not overwrite:
+        raise OutputExistsError(p)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Volumes
+# ---------------------------------------------------------------------------------------------------------------
+def list_dicom_series(directory: str | Path) -> dict[str, list[str]]:
+    """Image series in a DICOM directory: ``{series_uid: [file names sorted by slice position]}``.
+
+    The file lists come from GDCM's ``IPPSorter`` (sorting by image position along the slice normal), not
+    from the file names.
+    """
+    d = Path(directory)
+    reader = sitk.ImageSeriesReader()
+    try:
+        uids = reader.GetGDCMSeriesIDs(str(d))
+    except RuntimeError as exc:  # pragma: no cover - GDCM rarely raises here
+        raise InputError(f"could not scan the directory for DICOM series ({exc})", d) from exc
+    return {uid: list(reader.GetGDCMSeriesFileNames(str(d), uid)) for uid in uids}
+
+
+def _read_dicom_series(directory: Path, series_uid: str | None) -> sitk.Image:
+    series = list_dicom_series(directory)
+    if not series:
+        raise InputError("directory holds no DICOM image series", directory)
+    if series_uid is None:
+        series_uid = max(series, key=lambda uid: len(series[uid]))
+        if len(series) > 1:
+            logger.info("%s: %d DICOM series, using the largest (%s)", directory, len(series), series_uid)
+    elif series_uid not in series:
+        raise InputError(f"no DICOM series with UID {series_uid!r}; found {sorted(series)}", directory)
+    files = series[series_uid]
+    reader = sitk.ImageSeriesReader()
+    reader.SetFileNames(files)
+    reader.MetaDataDictionaryArrayUpdateOn()
+    try:
+        image = reader.Execute()
+    except RuntimeError as exc:
+        raise InputError(f"could not read DICOM series {series_uid} ({_first_line(exc)})", directory) from exc
+    if len(files) > 2:
+        positions = np.array([_slice_position(reader, i) for i in range(len(files))])
+        if np.all(np.isfinite(positions)):
+            gaps = np.diff(positions)
+            if np.any(gaps <= 0) or (np.ptp(gaps) > 0.01 * max(abs(np.mean(gaps)), 1e-6)):
+                logger.warning("%s: DICOM slices are unevenly spaced; geometry uses the mean spacing", directory)
+    return image
+
+
+def _slice_position(reader: sitk.ImageSeriesReader, i: int) -> float:
+    try:
+        ipp = [float(v) for v in reader.GetMetaData(i, "0020|0032").split("\\")]
+        iop = [float(v) for v in reader.GetMetaData(i, "0020|0037").split("\\")]
+    except (RuntimeError, ValueError):
+        return float("nan")
+    normal = np.cross(iop[:3], iop[3:])
+    return float(np.dot(normal, ipp))
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    # SimpleITK errors end with the useful sentence; keep it short
+    return lines[-1] if lines else type(exc).__name__
+
+
+def check_volume(image: sitk.Image, path: str | Path | None = None, check_finite: bool = True) -> sitk.Image:
+    """Check that ``image`` is a scalar 3D volume with finite voxels; returns it.
+
+    Raises:
+        InputError: for 2D/4D images, vector pixels, a dimension of size 1 (a single slice) or NaN/inf voxels.
+    """
+    dim = image.GetDimension()
+    if dim != 3:
+        raise InputError(f"expected a 3D volume, got a {dim}D image of size {image.GetSize()}", path)
+    if image.GetNumberOfComponentsPerPixel() != 1:
+        raise InputError(
+            f"expected a scalar volume, got {image.GetNumberOfComponentsPerPixel()} components per voxel "
+            "(a 4D or multi-channel image?)",
+            path,
+        )
+    if min(image.GetSize()) < 2:
+        raise InputError(f"expected a 3D volume, got size {image.GetSize()} (a single slice?)", path)
+    if check_finite and image.GetPixelID() in (sitk.sitkFloat32, sitk.sitkFloat64):
+        arr = sitk.GetArrayViewFromImage(image)
+        bad = int(np.count_nonzero(~np.isfinite(arr)))
+        if bad:
+            raise InputError(f"volume has {bad} NaN or infinite voxel(s)", path)
+    return image
+
+
+def load_volume(
+    path: str | Path,
+    series_uid: str | None = None,
+    pixel_type: int | None = sitk.sitkFloat32,
+    check_finite: bool = True,
+) -> sitk.Image:
+    """Read a 3D volume: NIfTI (``.nii``, ``.nii.gz``), MetaImage, NRRD, or a DICOM series directory.
+
+    Args:
+        path: file, or directory holding a DICOM series.
+        series_uid: for a DICOM directory with several series, the one to read (default: the largest).
+        pixel_type: SimpleITK pixel type to cast to (default float32); ``None`` keeps the stored type.
+        check_finite: raise for NaN/inf voxels.
+
+    Returns:
+        the volume as a ``SimpleITK.Image`` (LPS geometry as SimpleITK reads it).
+
+    Raises:
+        InputError: missing, unreadable or corrupt file, no DICOM series, not a scalar 3D volume, NaN voxels.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise InputError("no such file or directory", p)
+    if p.is_dir():
+        image = _read_dicom_series(p, series_uid)
+    else:
+        try:
+            image = sitk.ReadImage(str(p))
+        except RuntimeError as exc:
+            raise InputError(f"unreadable or corrupt image file ({_first_line(exc)})", p) from exc
+    check_volume(image, p, check_finite=False)
+    if check_finite and _suffix(p) in (".nii", ".nii.gz"):
+        _check_nifti_finite(p)
+    if pixel_type is not None and image.GetPixelID() != pixel_type:
+        image = sitk.Cast(image, pixel_type)
+    if check_finite:
+        check_volume(image, p, check_finite=True)
+    return image
+
+
+def _check_nifti_finite(path: Path) -> None:
+    """ITK's NIfTI reader silently replaces NaN by 0: look at the stored floats with nibabel instead."""
+    import nibabel as nib
+
+    try:
+        img = nib.load(str(path))
+    except Exception:  # noqa: BLE001 - SimpleITK could read it; nibabel's opinion is only a second check
+        return
+    if not np.issubdtype(img.get_data_dtype(), np.floating):
+        return
+    bad = int(np.count_nonzero(~np.isfinite(np.asanyarray(img.dataobj))))
+    if bad:
+        raise InputError(f"volume has {bad} NaN or infinite voxel(s)", path)
+
+
+def save_volume(image: sitk.Image, path: str | Path, overwrite: bool = False, compress: bool = True) -> Path:
+    """Write a volume (format from the suffix, e.g. ``.nii.gz``, ``.mha``, ``.nrrd``); refuses to overwrite."""
+    p = check_output_path(path, overwrite)
+    if _suffix(p) not in VOLUME_SUFFIXES:
+        raise InputError(f"unsupported volume suffix {_suffix(p)!r}; use one of {VOLUME_SUFFIXES}", p)
+    sitk.WriteImage(image, str(p), compress)
+    return p
+
+
+def resample(
+    moving: sitk.Image,
+    reference: sitk.Image | Grid,
+    transform: sitk.Transform | None = None,
+    interpolator: str = "linear",
+    default_value: float | None = None,
+    pixel_type: int | None = None,
+) -> sitk.Image:
+    """Resample ``moving`` onto the grid of ``reference`` under a fixed->moving ``transform`` (ITK convention).
+
+    Args:
+        moving: the image to resample.
+        reference: image (or :class:`~monai_rigidreg.geometry.Grid`) whose grid the output takes.
+        transform: maps reference points to moving points; identity if ``None``.
+        interpolator: ``"linear"``, ``"nearest"``, ``"bspline"``, ``"bspline3"`` or ``"lanczos"``.
+        default_value: value outside the moving image (default: the moving image's minimum, e.g. air for CT).
+        pixel_type: output pixel type (default: the moving image's).
+    """
+    if interpolator not in _INTERPOLATORS:
+        raise ValueError(f"interpolator must be one of {sorted(_INTERPOLATORS)}, got {interpolator!r}")
+    ref = reference.to_sitk() if isinstance(reference, Grid) else reference
+    if default_value is None:
+        stats = sitk.MinimumMaximumImageFilter()
+        stats.Execute(moving)
+        default_value = stats.GetMinimum()
+    tfm = sitk.Transform(3, sitk.sitkIdentity) if transform is None else transform
+    return sitk.Resample(
+        moving,
+        ref,
+        tfm,
+        _INTERPOLATORS[interpolator],
+        float(default_value),
+        moving.GetPixelID() if pixel_type is None else pixel_type,
+    )
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Transforms
+# ---------------------------------------------------------------------------------------------------------------
+def write_transform(transform: sitk.Transform, path: str | Path, overwrite: bool = False) -> Path:
+    """Write an ITK transform file (``.tfm``/``.txt`` text or ``.h5`` HDF5) that ITK, 3D Slicer and elastix read."""
+    p = check_output_path(path, overwrite)
+    if _suffix(p) not in TRANSFORM_SUFFIXES:
+        raise InputError(f"unsupported transform suffix {_suffix(p)!r}; use one of {TRANSFORM_SUFFIXES}", p)
+    sitk.WriteTransform(transform, str(p))
+    return p
+
+
+def read_transform(path: str | Path, rigid: bool = True) -> sitk.Transform:
+    """Read an ITK transform file; with ``rigid=True`` return it as an ``Euler3DTransform``.
+
+    Raises:
+        InputError: missing/corrupt file, or (``rigid=True``) a transform that is not a 3D rigid transform
+            (e.g. a B-spline, or an affine with scaling or shear).
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError("no such transform file", p)
+    try:
+        tfm = sitk.ReadTransform(str(p))
+    except RuntimeError as exc:
+        raise InputError(f"unreadable or corrupt transform file ({_first_line(exc)})", p) from exc
+    if not rigid:
+        return tfm
+    if tfm.GetDimension() != 3:
+        raise InputError(f"expected a 3D transform, got a {tfm.GetDimension()}D one", p)
+    names = _leaf_names(tfm)
+    try:
+        matrix = sitk_to_matrix(tfm)
+    except ValueError as exc:
+        raise InputError(f"expected a rigid transform, got {'+'.join(names)} ({exc})", p) from exc
+    r = matrix[:3, :3]
+    if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) <= 0:
+        raise InputError(f"expected a rigid transform, got {'+'.join(names)} with scaling or shear", p)
+    typed = tfm.Downcast()
+    center = typed.GetCenter() if hasattr(typed, "GetCenter") else (0.0, 0.0, 0.0)
+    return matrix_to_sitk(matrix, center)
+
+
+def _leaf_names(tfm: sitk.Transform) -> list[str]:
+    if tfm.GetName() == "CompositeTransform":
+        comp = sitk.CompositeTransform(tfm)
+        return [n for i in range(comp.GetNumberOfTransforms()) for n in _leaf_names(comp.GetNthTransform(i))]
+    return [tfm.GetName()]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# SimpleITK <-> MONAI MetaTensor
+# ---------------------------------------------------------------------------------------------------------------
+def sitk_to_metatensor(image: sitk.Image, dtype: torch.dtype = torch.float32, meta: dict[str, Any] | None = None):
+    """Channel-first MONAI ``MetaTensor`` ``[1, x, y, z]`` of a 3D image, with its RAS affine (MONAI's default).
+
+    The meta dict carries ``space="RAS"``, ``spatial_shape`` and ``original_affine`` as MONAI's ``LoadImage``
+    would, so MONAI transforms and :meth:`Grid.from_metatensor` see the right geometry.
+    """
+    check_volume(image, check_finite=False)
+    arr = sitk.GetArrayFromImage(image)  # [z, y, x]
+    data = torch.from_numpy(np.ascontiguousarray(arr.transpose(2, 1, 0))).to(dtype)[None]
+    grid = Grid.from_sitk(image)
+    affine = torch.as_tensor(grid.affine("RAS"), dtype=torch.float64)
+    m: dict[str, Any] = {
+        "space": "RAS",
+        "spatial_shape": np.asarray(grid.size),
+        "original_affine": affine.clone(),
+        "original_channel_dim": "no_channel",
+    }
+    if meta:
+        m.update(meta)
+    return MetaTensor(data, affine=affine, meta=m)
+
+
+def metatensor_to_sitk(tensor: Any, pixel_type: int | None = None) -> sitk.Image:
+    """``SimpleITK.Image`` of a single-channel MONAI ``MetaTensor`` ``[1, x, y, z]`` (or ``[x, y, z]``)."""
+    t = tensor
+    if t.ndim == 4:
+        if t.shape[0] != 1:
+            raise ValueError(f"expected one channel, got shape {tuple(t.shape)}")
+        spatial = t[0]
+    elif t.ndim == 3:
+        spatial = t
+    else:
+        raise ValueError(f"expected [1, x, y, z] or [x, y, z], got shape {tuple(t.shape)}")
+    grid = Grid.from_metatensor(t)
+    arr = torch.as_tensor(spatial).detach().cpu().numpy()
+    image = sitk.GetImageFromArray(np.ascontiguousarray(arr.transpose(2, 1, 0)))
+    grid.apply_to(image)
+    if pixel_type is not None:
+        image = sitk.Cast(image, pixel_type)
+    return image
+
+
+def grids_overlap(a: Grid, b: Grid, min_fraction: float = 0.05) -> bool:
+    """Whether the physical bounding boxes of two grids overlap by at least ``min_fraction`` of the smaller."""
+    amin, amax = a.physical_extent()
+    bmin, bmax = b.physical_extent()
+    inter = np.clip(np.minimum(amax, bmax) - np.maximum(amin, bmin), 0, None)
+    vol = lambda lo, hi: float(np.prod(np.maximum(hi - lo, 1e-6)))  # noqa: E731
+    return float(np.prod(inter)) >= min_fraction * min(vol(amin, amax), vol(bmin, bmax))
+
+
+def as_image(image_or_path: sitk.Image | str | Path, name: str = "image") -> sitk.Image:
+    """A checked float32 3D ``SimpleITK.Image`` from an image or a path (see :func:`load_volume`)."""
+    if isinstance(image_or_path, sitk.Image):
+        check_volume(image_or_path, name)
+        return sitk.Cast(image_or_path, sitk.sitkFloat32)
+    if isinstance(image_or_path, (str, Path)):
+        return load_volume(image_or_path)
+    raise TypeError(f"{name}: expected a path or a SimpleITK.Image, got {type(image_or_path).__name__}")
+
