@@ -1,0 +1,11 @@
+"""Evaluation of registration methods on datalists with known motion: the reference paper's Tables 1 and 2."""
+
+from monai_rigidreg.evaluation.report import (
+    CaseResult,
+    format_report,
+    motion_conditions,
+    summarize,
+    write_report,
+)
+
+__all__ = ["CaseResult", "format_report", "motion_conditions", "summarize", "write_report"]
