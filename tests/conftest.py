@@ -35,3 +35,25 @@ def real_data_dir():
     if d is None:
         pytest.skip("real CT volumes not found: set MONAI_RIGIDREG_DATA or place them in ../shared/data")
     return d
+
+
+TINY_SIM = dict(
+    preset="fast",
+    simct_size=(32, 32, 32),
+    simct_spacing=(8.0, 8.0, 8.0),
+    cbct_size=(24, 24, 24),
+    cbct_spacing=(10.0, 10.0, 10.0),
+    simct_views=60,
+    cbct_views=60,
+)
+"""Simulation settings small enough for the default test suite (a few seconds per case on a 2-core CPU)."""
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory):
+    """Three simulated CBCT/Sim-CT pairs (asymmetric Shepp-Logan, random motion) and their datalist."""
+    from monai_rigidreg.simulation import simulate_dataset
+
+    out = tmp_path_factory.mktemp("tiny_sim")
+    return simulate_dataset(out, phantom="shepp-logan-asym", protocol="random", num_cases=3, seed=1, progress=False,
+                            **TINY_SIM)

@@ -1,0 +1,95 @@
+"""Locate the shipped MONAI bundle and load its network with the settings its ``inference.json`` declares.
+
+The bundle is the single source of the model's configuration: the register API, the CLI and
+``python -m monai.bundle run`` all read the same ``configs/inference.json`` and ``models/model.pt``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from monai_rigidreg.errors import InputError
+
+__all__ = ["DEFAULT_BUNDLE_NAME", "default_bundle_path", "load_bundle_network", "bundle_settings"]
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_BUNDLE_NAME = "cbct_ct_rigid"
+SETTING_KEYS = ("network_size", "network_spacing", "cascade_steps")
+
+
+def default_bundle_path() -> Path:
+    """Directory of the shipped ``cbct_ct_rigid`` bundle (installed package data, or the source checkout)."""
+    import importlib.resources
+
+    try:
+        root = importlib.resources.files("monai_rigidreg._bundles") / DEFAULT_BUNDLE_NAME
+        candidate = Path(str(root))
+        if (candidate / "configs" / "inference.json").is_file():
+            return candidate
+    except (ModuleNotFoundError, TypeError):
+        pass
+    candidate = Path(__file__).resolve().parents[1] / "bundles" / DEFAULT_BUNDLE_NAME
+    if (candidate / "configs" / "inference.json").is_file():
+        return candidate
+    raise InputError(f"the shipped bundle {DEFAULT_BUNDLE_NAME!r} was not found; pass a bundle directory")
+
+
+def _parser(bundle: Path, config: str = "inference.json"):
+    from monai.bundle import ConfigParser
+
+    cfg = bundle / "configs" / config
+    if not cfg.is_file():
+        raise InputError(f"not a MONAI bundle: {cfg} is missing", bundle)
+    parser = ConfigParser()
+    parser.read_config(str(cfg))
+    parser["bundle_root"] = str(bundle)
+    return parser
+
+
+def bundle_settings(bundle: str | Path | None = None) -> dict[str, Any]:
+    """Network-grid size/spacing and cascade steps declared by the bundle's ``inference.json``."""
+    b = default_bundle_path() if bundle is None else Path(bundle)
+    parser = _parser(b)
+    return {k: parser.get_parsed_content(k) for k in SETTING_KEYS if k in parser}
+
+
+def load_bundle_network(
+    bundle: str | Path | None = None, device: torch.device | str = "cpu", weights: str | Path | None = None
+) -> tuple[nn.Module, dict[str, Any]]:
+    """Instantiate the bundle's ``network_def`` and load its weights.
+
+    Args:
+        bundle: bundle directory (default: the shipped one).
+        device: where to put the network.
+        weights: checkpoint path (default ``<bundle>/models/model.pt``); a plain ``state_dict`` or a MONAI
+            checkpoint dict with a ``"network"`` / ``"model"`` entry.
+
+    Returns:
+        ``(network in eval mode, settings dict)``.
+    """
+    b = default_bundle_path() if bundle is None else Path(bundle)
+    if not b.is_dir():
+        raise InputError("bundle directory not found", b)
+    parser = _parser(b)
+    net = parser.get_parsed_content("network_def")
+    w = Path(weights) if weights is not None else b / "models" / "model.pt"
+    if not w.is_file():
+        raise InputError("model weights not found (train the bundle or pass weights=...)", w)
+    try:
+        state = torch.load(str(w), map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch raises many types for corrupt files
+        raise InputError(f"could not load model weights ({exc})", w) from exc
+    if isinstance(state, dict) and ("network" in state or "model" in state):
+        state = state.get("network", state.get("model"))
+    try:
+        net.load_state_dict(state)
+    except RuntimeError as exc:
+        raise InputError(f"weights do not fit the bundle's network_def ({str(exc).splitlines()[0]})", w) from exc
+    settings = {k: parser.get_parsed_content(k) for k in SETTING_KEYS if k in parser}
+    return net.to(device).eval(), settings

@@ -1,0 +1,29 @@
+"""Training and evaluation glue for MONAI engines: batch preparation, criterion, metrics, handlers, data."""
+
+from monai_rigidreg.engine.batch import RegistrationPrepareBatch
+from monai_rigidreg.engine.criterion import RegistrationCriterion, canonical_grid
+from monai_rigidreg.engine.data import registration_transforms
+from monai_rigidreg.engine.handlers import (
+    LossTermsHandler,
+    ResumeHandler,
+    TrainingCheckpointSaver,
+    TrainingCurveHandler,
+    plot_history,
+)
+from monai_rigidreg.engine.metrics import RigidErrorHandler, RigidErrorMetric, error_handlers, from_registration_output
+
+__all__ = [
+    "RegistrationPrepareBatch",
+    "RegistrationCriterion",
+    "canonical_grid",
+    "registration_transforms",
+    "LossTermsHandler",
+    "TrainingCurveHandler",
+    "ResumeHandler",
+    "TrainingCheckpointSaver",
+    "plot_history",
+    "RigidErrorHandler",
+    "RigidErrorMetric",
+    "error_handlers",
+    "from_registration_output",
+]

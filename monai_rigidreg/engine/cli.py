@@ -1,0 +1,88 @@
+"""``monai-rigidreg train``: a thin wrapper over ``python -m monai.bundle run`` with the bundle's train config."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from monai_rigidreg.errors import InputError
+
+__all__ = ["add_parser", "run", "bundle_command"]
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "train",
+        help="train the registration network with the MONAI bundle (wraps 'python -m monai.bundle run')",
+        description="Runs the bundle's configs/train.json (or multi_gpu_train.json through torchrun with "
+        "--nproc N). Checkpoints go to <bundle>/models, logs and curves to --output-dir.",
+    )
+    p.add_argument("--datalist", required=True, type=Path, help="training datalist (monai-rigidreg simulate)")
+    p.add_argument("--val-datalist", required=True, type=Path, help="validation datalist (fixed paper-protocol set)")
+    p.add_argument("--bundle", type=Path, default=None, help="bundle directory (default: the shipped one)")
+    p.add_argument("--output-dir", type=Path, default=Path("runs"), help="TensorBoard logs, history, curves.png")
+    p.add_argument("--ckpt-dir", type=Path, default=None, help="checkpoints and model.pt (default: <bundle>/models)")
+    p.add_argument("--epochs", type=int, default=None)
+    p.add_argument("--epoch-length", type=int, default=None, help="iterations per epoch")
+    p.add_argument("--learning-rate", type=float, default=None)
+    p.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: CUDA if available)")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--num-workers", type=int, default=None, help="DataLoader workers")
+    p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --ckpt-dir")
+    p.add_argument("--nproc", type=int, default=1, help=">1: torchrun with multi_gpu_train.json (gloo on CPU)")
+    p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                   help="further bundle overrides, e.g. network_def#channels=[16,32,64,64]")
+    p.set_defaults(func=run)
+    return p
+
+
+def bundle_command(args: argparse.Namespace) -> list[str]:
+    """The ``monai.bundle run`` command line for ``args``."""
+    from monai_rigidreg.bundle import default_bundle_path
+
+    bundle = (args.bundle or default_bundle_path()).resolve()
+    for p in (args.datalist, args.val_datalist):
+        if not p.is_file():
+            raise InputError("datalist not found", p)
+    configs = [str(bundle / "configs" / "train.json")]
+    if args.nproc > 1:
+        configs.append(str(bundle / "configs" / "multi_gpu_train.json"))
+    overrides = {
+        "bundle_root": str(bundle),
+        "datalist": str(args.datalist.resolve()),
+        "val_datalist": str(args.val_datalist.resolve()),
+        "output_dir": str(args.output_dir.resolve()),
+        "ckpt_dir": str((args.ckpt_dir or bundle / "models").resolve()),
+        "epochs": args.epochs,
+        "epoch_length": args.epoch_length,
+        "learning_rate": args.learning_rate,
+        "seed": args.seed,
+        "num_workers": args.num_workers,
+        "resume": True if args.resume else None,
+    }
+    if args.device:
+        overrides["device"] = f"$torch.device('{args.device}')"
+    cmd = [sys.executable, "-m", "monai.bundle", "run", "--config_file", json.dumps(configs),
+           "--meta_file", str(bundle / "configs" / "metadata.json"),
+           "--logging_file", str(bundle / "configs" / "logging.conf")]
+    if args.nproc > 1:
+        cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc_per_node={args.nproc}",
+               "-m", "monai.bundle", *cmd[3:]]
+    for k, v in overrides.items():
+        if v is not None:
+            cmd += [f"--{k}", str(v)]
+    for kv in args.set:
+        if "=" not in kv:
+            raise InputError(f"--set expects KEY=VALUE, got {kv!r}")
+        k, v = kv.split("=", 1)
+        cmd += [f"--{k}", v]
+    return cmd
+
+
+def run(args: argparse.Namespace) -> int:
+    cmd = bundle_command(args)
+    print("running:", " ".join(cmd), flush=True)
+    return subprocess.call(cmd)

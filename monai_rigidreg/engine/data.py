@@ -1,0 +1,89 @@
+"""The MONAI transform chains of training, validation and inference, shared by the bundle configs and the API."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from monai.transforms import Compose, EnsureTyped, LoadImaged, SelectItemsd
+
+from monai_rigidreg.transforms import (
+    CBCT_KEY,
+    RIGID_KEY,
+    NormalizeHUd,
+    RandCBCTDegradationd,
+    RandRigid6DoFd,
+    ResampleToNetworkGridd,
+)
+
+__all__ = ["registration_transforms", "IMAGE_KEYS", "MASK_KEY"]
+
+IMAGE_KEYS = ("moving", "fixed")
+MASK_KEY = "moving_fov"
+
+
+def registration_transforms(
+    mode: str = "train",
+    network_size: Sequence[int] = (64, 64, 64),
+    network_spacing: Sequence[float] = (4.0, 4.0, 4.0),
+    translate_range: Any = 15.0,
+    rotate_range: Any = 15.0,
+    axis_prob: Any = 0.7,
+    degrade: bool = True,
+    hu_range: tuple[float, float] = (-1000.0, 2000.0),
+    degradation_kwargs: dict | None = None,
+) -> Compose:
+    """Transform chain for a datalist of ``fixed`` / ``moving`` (paths) items with ground truth ``params`` /
+    ``matrix`` / ``center`` (as ``monai-rigidreg simulate`` writes) and an optional ``moving_fov`` mask.
+
+    Steps: load (channel first, RAS ``MetaTensor``) -> resample ``moving``, ``fixed`` and ``moving_fov`` onto one
+    network grid centred on the fixed image (deterministic: ``CacheDataset`` caches up to here) -> ``train`` only:
+    random rigid motion of the moving CBCT (and its mask) composed with the recorded ground truth, and random
+    CBCT degradation -> HU window to [0, 1]. In every mode the ground truth ends up under ``"rigid_params"``
+    (``{"params" [6], "matrix" [4, 4], "center" [3]}``).
+
+    Args:
+        mode: ``"train"`` (random motion + degradation) or ``"val"`` (the recorded motion only).
+        network_size, network_spacing: network grid (voxels, mm).
+        translate_range, rotate_range, axis_prob: :class:`~monai_rigidreg.transforms.RandRigid6DoFd` ranges (mm,
+            degrees) and per-axis probability of the extra random motion.
+        degrade: apply :class:`~monai_rigidreg.transforms.RandCBCTDegradationd` in training.
+        hu_range: HU window mapped to [0, 1].
+        degradation_kwargs: overrides of the degradation defaults.
+    """
+    if mode not in ("train", "val"):
+        raise ValueError(f"mode must be 'train' or 'val', got {mode!r}")
+    keys = [*IMAGE_KEYS, MASK_KEY]
+    xforms: list = [
+        LoadImaged(keys=keys, ensure_channel_first=True, image_only=True, allow_missing_keys=True),
+        EnsureTyped(keys=keys, dtype="float32", allow_missing_keys=True),
+        ResampleToNetworkGridd(
+            keys=keys,
+            size=network_size,
+            spacing=network_spacing,
+            ref_key="fixed",
+            mode=("bilinear", "bilinear", "nearest"),
+            padding_value=(hu_range[0], hu_range[0], 0.0),
+            allow_missing_keys=True,
+        ),
+    ]
+    train = mode == "train"
+    xforms.append(
+        RandRigid6DoFd(
+            keys="moving",
+            mask_keys=MASK_KEY,
+            prob=1.0 if train else 0.0,
+            translate_range=translate_range,
+            rotate_range=rotate_range,
+            axis_prob=axis_prob,
+            center_key="fixed",
+            padding_value=hu_range[0],
+            allow_missing_keys=True,
+        )
+    )
+    if train and degrade:
+        xforms.append(RandCBCTDegradationd(keys="moving", **(degradation_kwargs or {})))
+    xforms.append(NormalizeHUd(keys=IMAGE_KEYS, a_min=hu_range[0], a_max=hu_range[1]))
+    # only what the engine uses goes on to collation (datalists may carry free-form fields, even nulls)
+    xforms.append(SelectItemsd(keys=[*keys, RIGID_KEY, CBCT_KEY, "case_id"], allow_missing_keys=True))
+    return Compose(xforms)

@@ -1,0 +1,204 @@
+"""Ignite handlers: per-epoch loss terms into the engine metrics, and the training-curve figure (paper Fig. 6)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+from monai_rigidreg.geometry import PARAM_NAMES
+
+__all__ = ["LossTermsHandler", "TrainingCurveHandler", "ResumeHandler", "TrainingCheckpointSaver", "plot_history"]
+
+logger = logging.getLogger(__name__)
+
+
+class LossTermsHandler:
+    """Average the criterion's per-term values over each epoch and publish them as ``engine.state.metrics``
+    (``loss_ssim``, ``loss_ncc``, ... ``loss_sup``), where MONAI's stats and TensorBoard handlers pick them up.
+
+    Args:
+        criterion: a :class:`~monai_rigidreg.engine.RegistrationCriterion` (anything with ``last_terms``).
+    """
+
+    def __init__(self, criterion: Any) -> None:
+        self.criterion = criterion
+        self._sums: dict[str, float] = defaultdict(float)
+        self._count = 0
+
+    def attach(self, engine: Any) -> None:
+        from ignite.engine import Events
+
+        engine.add_event_handler(Events.EPOCH_STARTED, self._reset)
+        engine.add_event_handler(Events.ITERATION_COMPLETED, self._accumulate)
+        engine.add_event_handler(Events.EPOCH_COMPLETED, self._publish)
+
+    def _reset(self, engine: Any) -> None:
+        self._sums.clear()
+        self._count = 0
+
+    def _accumulate(self, engine: Any) -> None:
+        for k, v in getattr(self.criterion, "last_terms", {}).items():
+            self._sums[k] += float(v)
+        self._count += 1
+
+    def _publish(self, engine: Any) -> None:
+        if self._count:
+            for k, v in self._sums.items():
+                engine.state.metrics[f"loss_{k}"] = v / self._count
+
+
+class TrainingCurveHandler:
+    """Record per-epoch training loss terms and validation errors; write ``history.json`` and ``curves.png``.
+
+    The figure is the analog of the reference paper's Fig. 6: loss terms against epoch, and the validation
+    per-axis translation (mm) and rotation (degrees) errors and TRE against epoch.
+
+    Args:
+        output_dir: where ``history.json`` and ``curves.png`` go.
+        evaluator: the validation engine, whose ``state.metrics`` (``val_tx`` ... ``val_tre``) are read at each
+            epoch end (attach this handler after the ``ValidationHandler`` so validation has run).
+        every: write the figure every this many epochs (and at the end of training).
+    """
+
+    def __init__(self, output_dir: str | Path, evaluator: Any = None, every: int = 1) -> None:
+        self.output_dir = Path(output_dir)
+        self.evaluator = evaluator
+        self.every = max(1, int(every))
+        self.history: list[dict[str, float]] = []
+        self._last_val_epoch = -1
+
+    def attach(self, engine: Any) -> None:
+        from ignite.engine import Events
+
+        engine.add_event_handler(Events.EPOCH_COMPLETED, self._record)
+        engine.add_event_handler(Events.COMPLETED, self._write)
+
+    def _record(self, engine: Any) -> None:
+        row: dict[str, float] = {"epoch": float(engine.state.epoch)}
+        row.update({k: float(v) for k, v in engine.state.metrics.items() if k.startswith("loss_")})
+        if isinstance(engine.state.output, dict) and "loss" in engine.state.output:
+            row["loss_last"] = float(engine.state.output["loss"])
+        ev = self.evaluator
+        if ev is not None and getattr(ev.state, "epoch", -1) != self._last_val_epoch and ev.state.metrics:
+            self._last_val_epoch = ev.state.epoch
+            row.update({k: float(v) for k, v in ev.state.metrics.items() if isinstance(v, (int, float))})
+        self.history.append(row)
+        if engine.state.epoch % self.every == 0:
+            self._write(engine)
+
+    def _write(self, engine: Any = None) -> None:
+        self.output_dir.mkdir(parents=True, exist_ok=True)
+        (self.output_dir / "history.json").write_text(json.dumps(self.history, indent=1))
+        if self.history:
+            plot_history(self.history, self.output_dir / "curves.png")
+
+
+def plot_history(history: list[dict[str, float]], path: str | Path) -> Path:
+    """Draw loss terms (log scale) and validation errors against epoch into ``path`` (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    epochs = [h["epoch"] for h in history]
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.5))
+    for k in sorted({k for h in history for k in h if k.startswith("loss_") and k != "loss_last"}):
+        vals = [abs(h.get(k, math.nan)) for h in history]
+        if any(v > 0 for v in vals if not math.isnan(v)):
+            axes[0].plot(epochs, vals, label=k[5:])
+    axes[0].set_yscale("log")
+    axes[0].set_title("training loss terms (|value|, epoch mean)")
+    for ax, names, unit in ((axes[1], PARAM_NAMES[:3], "mm"), (axes[2], PARAM_NAMES[3:], "degrees")):
+        for n in names:
+            pts = [(h["epoch"], h[f"val_{n}"]) for h in history if f"val_{n}" in h]
+            if pts:
+                ax.plot(*zip(*pts), marker="o", ms=3, label=f"|Δ{n}|")
+        ax.set_ylabel(unit)
+        ax.set_title(f"validation absolute error ({unit})")
+    pts = [(h["epoch"], h["val_tre"]) for h in history if "val_tre" in h]
+    if pts:
+        axes[1].plot(*zip(*pts), "k--", label="TRE")
+    for ax in axes:
+        ax.set_xlabel("epoch")
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    logger.info("training curves written to %s", path)
+    return Path(path)
+
+
+class ResumeHandler:
+    """Resume training from the newest ``checkpoint_epoch=N.pt`` in ``ckpt_dir`` (written by MONAI's
+    ``CheckpointSaver`` with ``save_interval``), when ``resume`` is true and one exists; otherwise do nothing.
+
+    Args:
+        ckpt_dir: checkpoint directory.
+        load_dict: objects to restore, e.g. ``{"network": net, "optimizer": opt}``; the engine this handler is
+            attached to is restored too (as ``"trainer"``), so that the epoch count resumes.
+        resume: switch (a config override: ``--resume true``).
+        map_location: device to load tensors onto.
+    """
+
+    def __init__(self, ckpt_dir: str | Path, load_dict: dict[str, Any], resume: bool = True,
+                 map_location: Any = None) -> None:
+        self.ckpt_dir = Path(ckpt_dir)
+        self.load_dict = load_dict
+        self.resume = bool(resume)
+        self.map_location = map_location
+
+    def latest(self) -> Path | None:
+        """The newest epoch checkpoint, or ``None``."""
+        import re
+
+        found = []
+        for p in self.ckpt_dir.glob("*checkpoint*epoch=*.pt"):
+            m = re.search(r"epoch=(\d+)", p.name)
+            if m:
+                found.append((int(m.group(1)), p))
+        return max(found)[1] if found else None
+
+    def attach(self, engine: Any) -> None:
+        if not self.resume:
+            return
+        path = self.latest()
+        if path is None:
+            logger.info("no checkpoint in %s: training starts from scratch", self.ckpt_dir)
+            return
+        from monai.handlers import CheckpointLoader
+
+        logger.info("resuming from %s", path)
+        load_dict = {**self.load_dict, "trainer": engine}
+        CheckpointLoader(str(path), load_dict, map_location=self.map_location).attach(engine)
+
+
+class TrainingCheckpointSaver:
+    """MONAI ``CheckpointSaver`` of ``save_dict`` plus the engine it is attached to (as ``"trainer"``), every
+    ``save_interval`` epochs, keeping ``n_saved`` files ``checkpoint_epoch=N.pt``: what :class:`ResumeHandler`
+    resumes from. (A bundle config cannot reference the trainer inside the trainer's own handler list.)
+
+    Args:
+        save_dir: checkpoint directory.
+        save_dict: objects to save besides the trainer, e.g. ``{"network": net, "optimizer": opt}``.
+        save_interval: epochs between checkpoints.
+        n_saved: checkpoints kept.
+    """
+
+    def __init__(self, save_dir: str | Path, save_dict: dict[str, Any], save_interval: int = 1,
+                 n_saved: int = 1) -> None:
+        self.save_dir = str(save_dir)
+        self.save_dict = save_dict
+        self.save_interval = int(save_interval)
+        self.n_saved = int(n_saved)
+
+    def attach(self, engine: Any) -> None:
+        from monai.handlers import CheckpointSaver
+
+        CheckpointSaver(self.save_dir, {**self.save_dict, "trainer": engine}, file_prefix="checkpoint",
+                        save_interval=self.save_interval, n_saved=self.n_saved, epoch_level=True).attach(engine)
