@@ -1,0 +1,25 @@
+"""Losses of monai-rigidreg."""
+
+from __future__ import annotations
+
+from monai_rigidreg.losses.rigid_loss import (
+    LossTerms,
+    RigidRegistrationLoss,
+    grid_gradient_penalty,
+    image_gradient_difference,
+    masked_mutual_information,
+    masked_ncc,
+    masked_ssim,
+    supervised_point_distance,
+)
+
+__all__ = [
+    "RigidRegistrationLoss",
+    "LossTerms",
+    "masked_ncc",
+    "masked_ssim",
+    "masked_mutual_information",
+    "grid_gradient_penalty",
+    "image_gradient_difference",
+    "supervised_point_distance",
+]
