@@ -1,0 +1,164 @@
+"""The register API and command: outputs, convention round trip, DICOM input, bad input, known-motion recovery."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+import torch
+from conftest import TINY_SIM
+from test_io import write_dicom_series
+
+from monai_rigidreg.cli import main
+from monai_rigidreg.errors import InputError, OutputExistsError
+from monai_rigidreg.geometry import Grid, target_registration_error
+from monai_rigidreg.io import load_volume, read_transform
+from monai_rigidreg.networks import DualEncoderRigidNet
+from monai_rigidreg.register import RigidRegistrar, confidence_score, register, write_outputs
+
+MOTION = [6.0, -4.0, 5.0, 3.0, -2.0, 4.0]
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    from monai_rigidreg.simulation import simulate_pair
+
+    out = tmp_path_factory.mktemp("pair")
+    return simulate_pair(out, phantom="shepp-logan-asym", params=MOTION, seed=3,
+                         **{k: v for k, v in TINY_SIM.items() if k != "preset"})
+
+
+@pytest.fixture(scope="module")
+def small_registrar():
+    torch.manual_seed(0)
+    net = DualEncoderRigidNet(channels=(4, 8, 8, 8), pool_size=2)
+    return RigidRegistrar(net, network_size=(32, 32, 32), network_spacing=(8.0, 8.0, 8.0), cascade_steps=2,
+                          device="cpu")
+
+
+def test_refine_recovers_known_motion_and_outputs_are_consistent(pair, small_registrar, tmp_path):
+    fixed, moving = load_volume(pair["fixed"]), load_volume(pair["moving"])
+    res = small_registrar(fixed, moving, refine=True)
+    center = Grid.from_sitk(fixed).center()
+    np.testing.assert_allclose(res.center, center)
+    pts = np.stack(np.meshgrid(*[np.linspace(-60, 60, 5)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    assert target_registration_error(res.params, MOTION, pts, center=center) < 2.0
+    assert {"preprocess", "network", "refine", "confidence", "resample", "total"} <= set(res.timings)
+    assert "change_tre_mm" in res.details["refine"]
+    paths = write_outputs(res, fixed, moving, tmp_path / "out")
+    assert set(paths) == {"transform.tfm", "registered.nii.gz", "result.json", "qc.png"}
+    # the transform file, read by plain SimpleITK and applied with sitk.Resample, reproduces registered.nii.gz
+    tfm = sitk.ReadTransform(str(paths["transform.tfm"]))
+    again = sitk.Resample(moving, fixed, tfm, sitk.sitkLinear, float(sitk.GetArrayViewFromImage(moving).min()))
+    np.testing.assert_allclose(sitk.GetArrayFromImage(again), sitk.GetArrayFromImage(load_volume(
+        paths["registered.nii.gz"])), atol=1e-3)
+    result = json.loads(paths["result.json"].read_text())
+    np.testing.assert_allclose([result["params"][k] for k in ("tx", "ty", "tz", "rx", "ry", "rz")], res.params)
+    np.testing.assert_allclose(np.array(result["matrix"]), res.matrix, atol=1e-12)
+    with pytest.raises(OutputExistsError):
+        write_outputs(res, fixed, moving, tmp_path / "out")
+
+
+def test_clinical_geometry_oblique_and_smaller_cbct(pair, small_registrar):
+    """A CBCT on an oblique, anisotropic, cropped grid: same physical content, so the same answer."""
+    fixed, moving = load_volume(pair["fixed"]), load_volume(pair["moving"])
+    base = small_registrar(fixed, moving, refine=True, assess=False).params
+    from monai_rigidreg.geometry import rotation_matrix
+
+    d = rotation_matrix(*np.deg2rad([4.0, -3.0, 10.0])).ravel()
+    cg = Grid.centered((20, 18, 16), (9.0, 10.0, 11.0), Grid.from_sitk(moving).center())
+    oblique = Grid(cg.size, cg.spacing, cg.origin, d)
+    # put the centre back where it was after the rotation of the direction
+    shift = Grid.from_sitk(moving).center() - oblique.center()
+    oblique = Grid(cg.size, cg.spacing, tuple(np.asarray(cg.origin) + shift), d)
+    from monai_rigidreg.io import resample
+
+    moving2 = resample(moving, oblique, None, default_value=-1000.0)
+    res = small_registrar(fixed, moving2, refine=True, assess=False)
+    pts = np.stack(np.meshgrid(*[np.linspace(-50, 50, 5)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    assert target_registration_error(res.params, base, pts, center=res.center) < 3.0
+
+
+def test_bad_inputs_give_clear_errors(pair, small_registrar, tmp_path):
+    fixed = load_volume(pair["fixed"])
+    with pytest.raises(InputError, match="no such file"):
+        small_registrar(tmp_path / "missing.nii.gz", fixed)
+    far = sitk.Image(fixed)
+    far.SetOrigin(tuple(np.asarray(fixed.GetOrigin()) + 5000.0))
+    with pytest.raises(InputError, match="do not overlap"):
+        small_registrar(fixed, far)
+    with pytest.raises(InputError, match="2D"):
+        small_registrar(fixed, fixed[:, :, 3])
+    arr = sitk.GetArrayFromImage(fixed)
+    arr[1, 2, 3] = np.nan
+    nan_img = sitk.GetImageFromArray(arr)
+    nan_img.CopyInformation(fixed)
+    with pytest.raises(InputError, match="NaN"):
+        small_registrar(fixed, nan_img)
+
+
+def test_confidence_flags_deliberately_failed_registrations(pair, small_registrar):
+    """The failure flag: right transforms pass, deliberately wrong ones (10-20 mm / 10-15 deg off) are flagged."""
+    fixed, moving = load_volume(pair["fixed"]), load_volume(pair["moving"])
+    grid = small_registrar.network_grid(fixed)
+    f_t = small_registrar.preprocess(fixed, grid)
+    m_t = small_registrar.preprocess(moving, grid)
+    fov = torch.ones_like(f_t[0])
+    good = small_registrar.assess(m_t, f_t, grid, np.asarray(MOTION), fov, swap=False)
+    wrong = [np.asarray(MOTION) + d for d in ([12, 0, 0, 0, 0, 0], [0, -15, 8, 0, 0, 0], [0, 0, 0, 12, 0, 0],
+                                              [5, 5, 0, 0, 0, 15])]
+    bad = [small_registrar.assess(m_t, f_t, grid, w, fov, swap=False) for w in wrong]
+    assert good["edge_ncc"] > max(b["edge_ncc"] for b in bad)
+    assert good["confidence"] >= 0.5
+    assert all(b["confidence"] < 0.5 for b in bad), [round(b["local_gain"], 4) for b in bad]
+    # swapped-input disagreement alone also flags
+    assert confidence_score(0.0, 8.0) < 0.5 and confidence_score(0.0, 0.5) > 0.5
+
+
+def test_register_command_with_dicom_and_overwrite_rules(pair, tmp_path, monkeypatch, small_registrar):
+    monkeypatch.setattr(RigidRegistrar, "from_bundle", classmethod(lambda cls, *a, **k: small_registrar))
+    fixed = load_volume(pair["fixed"])
+    dicom = tmp_path / "ct_dicom"
+    write_dicom_series(fixed, dicom, "1.2.3.4.5")
+    out = tmp_path / "out"
+    assert main(["register", "--fixed", str(dicom), "--moving", pair["moving"], "--output-dir", str(out),
+                 "--refine"]) == 0
+    assert (out / "transform.tfm").is_file() and (out / "qc.png").is_file()
+    t = read_transform(out / "transform.tfm")
+    assert t.GetName() == "Euler3DTransform"
+    # an existing output directory is refused (exit code 2, nothing changed), and replaced with --overwrite
+    before = (out / "result.json").read_text()
+    assert main(["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir", str(out)]) == 2
+    assert (out / "result.json").read_text() == before
+    assert main(["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir", str(out),
+                 "--overwrite"]) == 0
+    # corrupt input: exit code 2 and no output directory at all
+    bad = tmp_path / "corrupt.nii.gz"
+    bad.write_bytes(b"\x00" * 100)
+    assert main(["register", "--fixed", str(bad), "--moving", pair["moving"], "--output-dir",
+                 str(tmp_path / "never")]) == 2
+    assert not (tmp_path / "never").exists()
+    four_d = tmp_path / "4d.nii.gz"
+    sitk.WriteImage(sitk.JoinSeries([fixed, fixed]), str(four_d))
+    assert main(["register", "--fixed", str(four_d), "--moving", pair["moving"], "--output-dir",
+                 str(tmp_path / "never")]) == 2
+
+
+def test_shipped_model_recovers_known_motion(pair):
+    """The shipped bundle weights on a simulated pair (network + cascade, then with refinement)."""
+    try:
+        res = register(pair["fixed"], pair["moving"], device="cpu", resample_moving=False)
+    except InputError as exc:
+        pytest.fail(f"shipped bundle unusable: {exc}")
+    fixed = load_volume(pair["fixed"])
+    from monai_rigidreg.evaluation.evaluate import body_points
+
+    pts = body_points(fixed)
+    tre_net = target_registration_error(res.params, MOTION, pts, center=res.center)
+    res_r = register(pair["fixed"], pair["moving"], device="cpu", refine=True, resample_moving=False)
+    tre_ref = target_registration_error(res_r.params, MOTION, pts, center=res_r.center)
+    initial = target_registration_error(np.zeros(6), MOTION, pts, center=res.center)
+    assert tre_net < 0.5 * initial
+    assert tre_ref < 2.0
