@@ -379,6 +379,12 @@ def save_volume_hu(mu: torch.Tensor, grid: Grid, path: str | Path) -> Path:
     return _write_atomic(img, Path(path))
 
 
+def save_fov_mask(fov: torch.Tensor, grid: Grid, path: str | Path) -> Path:
+    """Write a boolean field-of-view mask ``[nx, ny, nz]`` as a uint8 NIfTI on ``grid`` (atomically)."""
+    arr = fov.detach().cpu().numpy().transpose(2, 1, 0).astype(np.uint8)
+    return _write_atomic(grid.apply_to(sitk.GetImageFromArray(np.ascontiguousarray(arr))), Path(path))
+
+
 def _write_atomic(img: sitk.Image, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
@@ -454,10 +460,7 @@ def _run_case(cfg_dict: dict[str, Any], case: dict[str, Any], out_dir: str) -> s
         device=dev,
     )
     out = Path(out_dir)
-    fov_img = cfg.cbct_grid.apply_to(
-        sitk.GetImageFromArray(np.ascontiguousarray(fov.cpu().numpy().transpose(2, 1, 0).astype(np.uint8)))
-    )
-    _write_atomic(fov_img, out / case["moving_fov"])
+    save_fov_mask(fov, cfg.cbct_grid, out / case["moving_fov"])
     save_volume_hu(rec, cfg.cbct_grid, out / case["moving"])  # written last: its presence marks a finished case
     return case["case_id"]
 

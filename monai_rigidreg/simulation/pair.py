@@ -6,14 +6,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import SimpleITK as sitk
-
 from monai_rigidreg.geometry import params_to_matrix
 from monai_rigidreg.simulation.generator import (
     _detector_radius,
     _seed,
     make_config,
+    save_fov_mask,
     save_volume_hu,
     simulate_cbct,
     simulate_simct,
@@ -87,10 +85,7 @@ def simulate_pair(
         device=dev,
     )
     moving = save_volume_hu(rec, cfg.cbct_grid, out / "cbct.nii.gz")
-    fov_img = cfg.cbct_grid.apply_to(
-        sitk.GetImageFromArray(np.ascontiguousarray(fov.cpu().numpy().transpose(2, 1, 0).astype(np.uint8)))
-    )
-    sitk.WriteImage(fov_img, str(out / "cbct_fov.nii.gz"), True)
+    save_fov_mask(fov, cfg.cbct_grid, out / "cbct_fov.nii.gz")
     center = cfg.simct_grid.center()
     return {
         "fixed": str(fixed),
