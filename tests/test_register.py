@@ -146,8 +146,17 @@ def test_register_command_with_dicom_and_overwrite_rules(pair, tmp_path, monkeyp
                  str(tmp_path / "never")]) == 2
 
 
-def test_shipped_model_recovers_known_motion(pair):
+@pytest.fixture(scope="module")
+def fast_pair(tmp_path_factory):
+    """A pair at the ``fast`` preset (Sim-CT 64^3 at 4 mm, CBCT 48^3 at 5 mm): the network grid's resolution."""
+    from monai_rigidreg.simulation import simulate_pair
+
+    return simulate_pair(tmp_path_factory.mktemp("fast_pair"), phantom="shepp-logan-asym", params=MOTION, seed=4)
+
+
+def test_shipped_model_recovers_known_motion(fast_pair):
     """The shipped bundle weights on a simulated pair (network + cascade, then with refinement)."""
+    pair = fast_pair
     try:
         res = register(pair["fixed"], pair["moving"], device="cpu", resample_moving=False)
     except InputError as exc:
