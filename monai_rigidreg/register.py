@@ -252,26 +252,25 @@ class RigidRegistrar:
         Returns ``ncc_before``/``ncc_after`` (intensity NCC in the field of view), ``edge_ncc`` (NCC of gradient
         magnitudes), ``local_gain`` and ``swap_tre_mm`` (see :func:`confidence_score`) and ``confidence``.
         """
-        moving64 = moving_t[None].double()
-        fixed64 = fixed_t[0].double()
-        edges_f = gradient_magnitude(fixed64)
-
-        def warped(p: np.ndarray) -> torch.Tensor:
-            return warp_volume_params(moving64, torch.as_tensor(p, dtype=torch.float64)[None], grid)[0, 0]
-
+        p0 = np.asarray(params, dtype=np.float64)
+        steps = [0.5 * min(grid.spacing)] * 3 + [2.0] * 3
+        candidates = [p0]
+        for i, step in enumerate(steps):
+            for sign in (-1.0, 1.0):
+                q = p0.copy()
+                q[i] += sign * step
+                candidates.append(q)
         with torch.no_grad():
-            fov_w = warp_volume_params(fov[None, None].double(), torch.as_tensor(params)[None].double(), grid,
-                                       mode="nearest")[0, 0]
-            w = warped(params)
-            out = {"ncc_before": fov_ncc(moving_t[0], fixed64, fov), "ncc_after": fov_ncc(w, fixed64, fov_w)}
-            edge = fov_ncc(gradient_magnitude(w), edges_f, fov_w)
-            best = edge
-            steps = [0.5 * min(grid.spacing)] * 3 + [2.0] * 3
-            for i, step in enumerate(steps):
-                for sign in (-1.0, 1.0):
-                    q = np.array(params, dtype=np.float64)
-                    q[i] += sign * step
-                    best = max(best, fov_ncc(gradient_magnitude(warped(q)), edges_f, fov_w))
+            fixed_f = fixed_t[0].float()
+            # all candidates in one batched warp (float32): [13, 1, x, y, z]
+            batch = torch.as_tensor(np.stack(candidates), dtype=torch.float32)
+            moved = warp_volume_params(moving_t[None].float().expand(len(candidates), -1, -1, -1, -1), batch, grid)
+            fov_w = warp_volume_params(fov[None, None].float(), batch[:1], grid, mode="nearest")[0, 0]
+            edges_f = gradient_magnitude(fixed_f)
+            edges_m = gradient_magnitude(moved[:, 0])
+            out = {"ncc_before": fov_ncc(moving_t[0], fixed_f, fov), "ncc_after": fov_ncc(moved[0, 0], fixed_f, fov_w)}
+            scores = [fov_ncc(edges_m[k], edges_f, fov_w) for k in range(len(candidates))]
+        edge, best = scores[0], max(scores)
         out["edge_ncc"] = edge
         out["local_gain"] = float(best - edge)
         if swap:
