@@ -1,7 +1,10 @@
 #!/usr/bin/env bash
 # Simulate the data the shipped bundle weights were trained and validated on (exact commands; see
 # bundles/cbct_ct_rigid/docs/README.md). Base pairs carry a small motion (<= 5 mm, 5 deg); training adds random
-# motion on the fly (RandRigid6DoFd). Held out from training: the stock Shepp-Logan phantom, the thorax CT and
+# motion on the fly (RandRigid6DoFd). Training CBCTs cover the whole object: a truncated field of view would move
+# with the on-the-fly motion and give the motion away, so truncation is added after the motion, in the scanner
+# frame, by RandCBCTDegradationd. The *_interior sets (128 mm FOV, as in the paper) are simulated for evaluation
+# and excluded from train.json. Held out from training: the stock Shepp-Logan phantom, the thorax CT and
 # the random-phantom seeds of benchmarks/bench_registration.py.
 #   usage: scripts/make_training_data.sh [DATA_DIR] [SHARED_DATA_DIR]
 set -euo pipefail
@@ -35,7 +38,7 @@ import json, sys
 from pathlib import Path
 root = Path(sys.argv[1])
 items = []
-for sub in sorted(p for p in root.iterdir() if p.is_dir() and p.name != "val_paper"):
+for sub in sorted(p for p in root.iterdir() if p.is_dir() and p.name != "val_paper" and "interior" not in p.name):
     for it in json.loads((sub / "dataset.json").read_text())["training"]:
         for k in ("fixed", "moving", "moving_fov"):
             it[k] = f"{sub.name}/{it[k]}"

@@ -71,6 +71,7 @@ CBCT_RECORD_KEYS: tuple[str, ...] = (
     "fov",
     "fov_radius",
     "fov_edge",
+    "fov_half_length",
     "seed",
 )
 """Keys of the record (flat, fixed, so that it collates): a bool per effect (applied or not) and its values
@@ -118,8 +119,8 @@ class RandCBCTDegradation(RandomizableTransform):
         hu_prob: probability of HU miscalibration. hu_scale: scale (unitless). hu_offset: offset in HU.
         hu_gamma: exponent of the non-linear mapping of the attenuation (1: linear).
         fov_prob: probability of field-of-view truncation. fov_radius: cylinder radius in mm.
-        fov_edge: soft-edge width in mm (logistic scale). fov_half_length: half-length in mm along the volume z axis
-            (``None``: no axial truncation).
+        fov_edge: soft-edge width in mm (logistic scale). fov_half_length: half-length in mm along the volume z axis,
+            a number or a (low, high) range (``None``: no axial truncation; recorded as 0).
         background: value outside the field of view (HU).
     """
 
@@ -154,7 +155,7 @@ class RandCBCTDegradation(RandomizableTransform):
         fov_prob: float = 0.5,
         fov_radius: float | Sequence[float] = (130.0, 240.0),
         fov_edge: float | Sequence[float] = (2.0, 8.0),
-        fov_half_length: float | None = None,
+        fov_half_length: float | Sequence[float] | None = None,
         background: float = -1000.0,
     ) -> None:
         RandomizableTransform.__init__(self, prob)
@@ -188,6 +189,8 @@ class RandCBCTDegradation(RandomizableTransform):
             "fov_radius": ensure_interval(fov_radius, "fov_radius"),
             "fov_edge": ensure_interval(fov_edge, "fov_edge"),
         }
+        if fov_half_length is not None:
+            self.ranges["fov_half_length"] = ensure_interval(fov_half_length, "fov_half_length")
         if self.ranges["downsample_factor"][0] < 1.0:
             raise ValueError("downsample_factor must be >= 1")
         self.scatter_control_points = int(scatter_control_points)
@@ -195,7 +198,6 @@ class RandCBCTDegradation(RandomizableTransform):
         self.ring_width = float(ring_width)
         self.noise_floor = float(noise_floor)
         self.noise_correlation = float(noise_correlation)
-        self.fov_half_length = fov_half_length
         self.background = float(background)
         self.last_record: dict[str, Any] = self._neutral_record()
 
@@ -240,6 +242,7 @@ class RandCBCTDegradation(RandomizableTransform):
                 )
             if rec["fov"]:
                 rec["fov_radius"], rec["fov_edge"] = vals["fov_radius"], vals["fov_edge"]
+                rec["fov_half_length"] = vals.get("fov_half_length", 0.0)
             rec["seed"] = seed
         self.last_record = rec
 
@@ -340,8 +343,8 @@ class RandCBCTDegradation(RandomizableTransform):
         if rec["fov"]:
             edge = max(float(rec["fov_edge"]), 1e-3)
             inside = torch.sigmoid((float(rec["fov_radius"]) - r) / edge)[:, :, None]
-            if self.fov_half_length is not None:
-                inside = inside * torch.sigmoid((float(self.fov_half_length) - cz.abs()) / edge)[None, None, :]
+            if float(rec["fov_half_length"]) > 0:
+                inside = inside * torch.sigmoid((float(rec["fov_half_length"]) - cz.abs()) / edge)[None, None, :]
             x = inside[None] * x + (1.0 - inside[None]) * self.background
 
         out = x.to(raw.dtype) if raw.dtype.is_floating_point else x.round().to(raw.dtype)
