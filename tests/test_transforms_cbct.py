@@ -89,14 +89,14 @@ class TestCBCTDegradation:
         np.testing.assert_allclose(out[:, :, 11:13], self.img[0].numpy()[:, :, 11:13], atol=1.0)
 
     def test_fov_half_length_range_is_drawn_and_recorded(self):
-        t = only("fov", fov_radius=500.0, fov_edge=1.0, fov_half_length=(8.0, 20.0))
+        t = only("fov", fov_radius=500.0, fov_edge=1.0, fov_half_length=(14.0, 24.0))
         t.set_random_state(3)
         out = t(self.img)[0].numpy()
         h = t.last_record["fov_half_length"]
-        assert 8.0 <= h <= 20.0
+        assert 14.0 <= h <= 24.0
         cz = (np.arange(out.shape[2]) - (out.shape[2] - 1) / 2.0) * 2.5  # mm from the volume centre along z
-        np.testing.assert_allclose(out[:, :, np.abs(cz) > h + 6.0], -1000.0, atol=1.0)
-        inner = np.abs(cz) < h - 6.0
+        np.testing.assert_allclose(out[:, :, np.abs(cz) > h + 10.0], -1000.0, atol=1.0)
+        inner = np.abs(cz) < h - 10.0
         np.testing.assert_allclose(out[:, :, inner], self.img[0].numpy()[:, :, inner], atol=1.0)
         assert only("fov", fov_radius=500.0).last_record["fov_half_length"] == 0.0  # no axial truncation
 
