@@ -61,7 +61,7 @@ def load_datalist(path: str | Path, key: str | None = None) -> tuple[list[dict[s
         it = dict(item)
         for k in ("fixed", "moving", "moving_fov"):
             if k in it and not Path(it[k]).is_absolute():
-                it[k] = str(p.parent / it[k])
+                it[k] = str(p.parent.resolve() / it[k])
         out.append(it)
     return out, p.parent
 
