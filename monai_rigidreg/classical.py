@@ -59,7 +59,7 @@ def register_sitk(
     smoothing_sigmas_mm: Sequence[float] = (2.0, 1.0, 0.0),
     iterations: int = 200,
     bins: int = 32,
-    sampling_percentage: float = 0.2,
+    samples: int = 20000,
     learning_rate: float = 1.0,
     seed: int = 0,
 ) -> ClassicalResult:
@@ -76,7 +76,8 @@ def register_sitk(
         shrink_factors, smoothing_sigmas_mm: the multi-resolution pyramid (one entry per level).
         iterations: maximum iterations per level.
         bins: Mattes MI histogram bins.
-        sampling_percentage: random fraction of fixed voxels used per iteration (0 < p <= 1).
+        samples: random fixed-image samples per iteration at every level (as elastix does; a percentage of the
+            voxels would mean millions of samples for a 256^3 CT at full resolution).
         learning_rate: regular-step gradient descent's initial step (physical units after scaling).
         seed: sampling seed (deterministic results).
 
@@ -99,7 +100,10 @@ def register_sitk(
     reg = sitk.ImageRegistrationMethod()
     reg.SetMetricAsMattesMutualInformation(numberOfHistogramBins=bins)
     reg.SetMetricSamplingStrategy(reg.RANDOM)
-    reg.SetMetricSamplingPercentage(float(sampling_percentage), int(seed))
+    n_vox = float(np.prod(fixed_f.GetSize()))
+    reg.SetMetricSamplingPercentagePerLevel(
+        [float(np.clip(samples * s**3 / n_vox, 1e-4, 1.0)) for s in shrink_factors], int(seed)
+    )
     if fixed_mask is not None:
         reg.SetMetricFixedMask(fixed_mask)
     if moving_mask is not None:
