@@ -167,9 +167,14 @@ def register_elastix(
     kwargs = {}
     if moving_mask is not None:
         kwargs["moving_mask"] = _sitk_to_itk(sitk.Cast(moving_mask, sitk.sitkUInt8))
-    _, result = itk.elastix_registration_method(
-        f_itk, m_itk, parameter_object=pobj, log_to_console=False, **kwargs
-    )
+    c = Grid.from_sitk(fixed).center() if center is None else np.asarray(center, dtype=np.float64)
+    try:
+        _, result = itk.elastix_registration_method(
+            f_itk, m_itk, parameter_object=pobj, log_to_console=False, **kwargs
+        )
+    except RuntimeError as exc:  # elastix reports its own failures (e.g. too few samples) this way
+        logger.warning("elastix failed: %s", str(exc).strip().splitlines()[-1])
+        return ClassicalResult(np.zeros(6), c, runtime_s=time.perf_counter() - t0, stop_condition=f"failed: {exc}")
     tp = result.GetParameterMap(0)
     p = [float(v) for v in tp["TransformParameters"]]  # rx ry rz tx ty tz (EulerTransform, radians)
     cor = [float(v) for v in tp["CenterOfRotationPoint"]]
@@ -177,7 +182,6 @@ def register_elastix(
     tfm.SetCenter(cor)
     tfm.SetRotation(*p[:3])
     tfm.SetTranslation(p[3:6])
-    c = Grid.from_sitk(fixed).center() if center is None else np.asarray(center, dtype=np.float64)
     return ClassicalResult(matrix_to_params(sitk_to_matrix(tfm), c), c, runtime_s=time.perf_counter() - t0)
 
 

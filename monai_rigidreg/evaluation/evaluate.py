@@ -171,5 +171,5 @@ def _run_method(method: str, fixed: sitk.Image, moving: sitk.Image, fov: sitk.Im
     else:
         from monai_rigidreg.classical import register_elastix
 
-        res = register_elastix(fixed, moving, center=center, moving_mask=fov)
+        res = register_elastix(fixed, moving, center=center)  # elastix's default rigid map, as specified
     return res.params, time.perf_counter() - t0, {"stop": res.stop_condition}
