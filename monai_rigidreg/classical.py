@@ -164,9 +164,14 @@ def register_elastix(
     m_itk = _sitk_to_itk(sitk.Cast(moving, sitk.sitkFloat32))
     pobj = itk.ParameterObject.New()
     pobj.AddParameterMap(pobj.GetDefaultParameterMap("rigid"))
-    kwargs = {}
-    if moving_mask is not None:
-        kwargs["moving_mask"] = _sitk_to_itk(sitk.Cast(moving_mask, sitk.sitkUInt8))
+    # the CBCT usually covers less than the CT: sample the CT only where the CBCT (or its mask) lies, otherwise
+    # elastix stops with "too many samples map outside the moving image"
+    footprint = moving_mask if moving_mask is not None else sitk.Image(moving.GetSize(), sitk.sitkUInt8) + 1
+    if moving_mask is None:
+        footprint.CopyInformation(moving)
+    fixed_mask = sitk.Resample(sitk.Cast(footprint, sitk.sitkUInt8), fixed, sitk.Transform(),
+                               sitk.sitkNearestNeighbor, 0)
+    kwargs = {"fixed_mask": _sitk_to_itk(fixed_mask)}
     c = Grid.from_sitk(fixed).center() if center is None else np.asarray(center, dtype=np.float64)
     try:
         _, result = itk.elastix_registration_method(
