@@ -154,6 +154,11 @@ def fast_pair(tmp_path_factory):
     return simulate_pair(tmp_path_factory.mktemp("fast_pair"), phantom="shepp-logan-asym", params=MOTION, seed=4)
 
 
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 6 open: the shipped weights are an early 13-minute CPU run that does not yet recover the motion "
+    "(bundles/cbct_ct_rigid/docs/README.md); strict: remove this marker when better weights make the test pass",
+)
 def test_shipped_model_recovers_known_motion(fast_pair):
     """The shipped bundle weights on a simulated pair (network + cascade, then with refinement)."""
     pair = fast_pair
