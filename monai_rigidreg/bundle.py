@@ -55,7 +55,10 @@ def _parser(bundle: Path, config: str = "inference.json"):
 def bundle_settings(bundle: str | Path | None = None) -> dict[str, Any]:
     """Network-grid size/spacing and cascade steps declared by the bundle's ``inference.json``."""
     b = default_bundle_path() if bundle is None else Path(bundle)
-    parser = _parser(b)
+    return _settings(_parser(b))
+
+
+def _settings(parser: Any) -> dict[str, Any]:
     return {k: parser.get_parsed_content(k) for k in SETTING_KEYS if k in parser}
 
 
@@ -91,5 +94,4 @@ def load_bundle_network(
         net.load_state_dict(state)
     except RuntimeError as exc:
         raise InputError(f"weights do not fit the bundle's network_def ({str(exc).splitlines()[0]})", w) from exc
-    settings = {k: parser.get_parsed_content(k) for k in SETTING_KEYS if k in parser}
-    return net.to(device).eval(), settings
+    return net.to(device).eval(), _settings(parser)

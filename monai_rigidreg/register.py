@@ -304,14 +304,15 @@ class RigidRegistrar:
                 "the CT (fixed) and CBCT (moving) do not overlap in physical space: check that both are in the "
                 "same patient coordinate system (origins and directions)"
             )
-        fov_img = cylindrical_fov_mask(moving_img) if moving_fov is None else moving_fov
+        # the CBCT field of view is only needed by the refinement and the confidence signals
+        fov_img = None
+        if refine or assess:
+            fov_img = cylindrical_fov_mask(moving_img) if moving_fov is None else moving_fov
 
         t = time.perf_counter()
         grid = self.network_grid(fixed_img)
         fixed_t = self.preprocess(fixed_img, grid)
         moving_t = self.preprocess(moving_img, grid)
-        fov_t = torch.as_tensor(self._resampler(sitk_to_metatensor(fov_img), grid=grid, mode="nearest",
-                                                padding_value=0.0))[0]
         timings["preprocess"] = time.perf_counter() - t
 
         t = time.perf_counter()
@@ -343,6 +344,8 @@ class RigidRegistrar:
         confidence, flagged = float("nan"), False
         if assess:
             t = time.perf_counter()
+            fov_t = torch.as_tensor(self._resampler(sitk_to_metatensor(fov_img), grid=grid, mode="nearest",
+                                                    padding_value=0.0))[0]
             signals = self.assess(moving_t, fixed_t, grid, params, fov_t)
             timings["confidence"] = time.perf_counter() - t
             confidence = signals.pop("confidence")

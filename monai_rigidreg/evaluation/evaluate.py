@@ -131,18 +131,18 @@ def evaluate_datalist(
 
     from tqdm.auto import tqdm
 
-    cache: dict[str, sitk.Image] = {}
+    cache: dict[str, tuple[sitk.Image, np.ndarray]] = {}
     cases: list[CaseResult] = []
     for item in tqdm(items, desc="evaluate", disable=not progress, unit="case"):
         if item["fixed"] not in cache:
-            cache.clear()  # keep one fixed image (datalists group cases by object)
-            cache[item["fixed"]] = load_volume(item["fixed"])
-        fixed = cache[item["fixed"]]
+            cache.clear()  # keep one fixed image and its body points (datalists group cases by object)
+            fixed_img = load_volume(item["fixed"])
+            cache[item["fixed"]] = (fixed_img, body_points(fixed_img))
+        fixed, pts = cache[item["fixed"]]
         moving = load_volume(item["moving"])
         fov = load_volume(item["moving_fov"], pixel_type=sitk.sitkUInt8) if "moving_fov" in item else None
         center = Grid.from_sitk(fixed).center()
         truth = true_params(item, center)
-        pts = body_points(fixed)
         case_id = str(item.get("case_id", Path(item["moving"]).name))
         for method in methods:
             pred, runtime, extra = _run_method(method, fixed, moving, fov, center, registrar)
