@@ -146,7 +146,7 @@ def write_report(cases: Sequence[CaseResult], output_dir: str | Path) -> dict[st
     d.mkdir(parents=True, exist_ok=True)
     summary = summarize(cases)
     paths = {"csv": d / "cases.csv", "json": d / "summary.json", "report": d / "report.md"}
-    with open(paths["csv"], "w", newline="") as fh:
+    with open(paths["csv"], "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["case_id", "method", "group", *[f"true_{n}" for n in PARAM_NAMES],
                     *[f"pred_{n}" for n in PARAM_NAMES], *[f"abs_err_{n}" for n in PARAM_NAMES],
@@ -155,6 +155,7 @@ def write_report(cases: Sequence[CaseResult], output_dir: str | Path) -> dict[st
             w.writerow([c.case_id, c.method, c.group, *[f"{v:.4f}" for v in c.params_true],
                         *[f"{v:.4f}" for v in c.params_pred], *[f"{v:.4f}" for v in c.abs_errors],
                         f"{c.tre_mm:.4f}", int(c.success), f"{c.runtime_s:.4f}"])
-    paths["json"].write_text(json.dumps({"summary": summary, "cases": [asdict(c) for c in cases]}, indent=1))
-    paths["report"].write_text(format_report(summary))
+    paths["json"].write_text(json.dumps({"summary": summary, "cases": [asdict(c) for c in cases]}, indent=1),
+                             encoding="utf-8")
+    paths["report"].write_text(format_report(summary), encoding="utf-8")
     return paths
