@@ -1,0 +1,226 @@
+"""Differentiable Gauss-Newton rigid alignment of two feature maps (inverse-compositional Lucas-Kanade).
+
+Used as the fine stage of :class:`~monai_rigidreg.networks.DualEncoderRigidNet`: the regression head gives a
+coarse estimate, a few Gauss-Newton steps on (learned) feature maps make it precise. Regression alone cannot
+reach sub-voxel accuracy cheaply (it has to learn the mm scale of every displacement from data); a Gauss-Newton
+step computes the displacement from image gradients, so the learned part only has to make the features
+comparable (CBCT vs CT) and the start close enough.
+
+Conventions are those of :mod:`monai_rigidreg.geometry`: ``T`` maps fixed points to moving points (LPS mm), the
+estimate is a ``[B, 4, 4]`` matrix, parameters are ``(tx, ty, tz, rx, ry, rz)`` mm / degrees about the grid
+centre. The Jacobian combines the image gradient with the voxel displacement per parameter computed from
+:func:`~monai_rigidreg.geometry.params_to_matrix_torch` and the grid's index-to-physical matrix, so no convention
+is derived a second time here (tests compare it with finite differences of :func:`~monai_rigidreg.warp.warp_volume`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from monai_rigidreg.geometry import Grid, params_to_matrix_torch
+from monai_rigidreg.warp import warp_volume
+
+__all__ = [
+    "alignment_features",
+    "fixed_jacobian",
+    "gauss_newton_align",
+    "gradient_magnitude",
+    "parameter_flow",
+    "pyramid",
+]
+
+def parameter_flow(grid: Grid, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
+                   ) -> torch.Tensor:
+    """Physical displacement of every voxel centre per unit parameter at the identity: ``[6, 3, x, y, z]``.
+
+    ``d W_p(x) / dp_k`` (mm per mm, mm per degree) for ``W_p`` of
+    :func:`~monai_rigidreg.geometry.params_to_matrix_torch` about ``grid.center()``, by central differences of that
+    function (exact for translations; rotations to O(h^2) with h = 1e-3 degrees).
+    """
+    h = 1e-3
+    eye = torch.eye(6, dtype=torch.float64, device=device)
+    mats = params_to_matrix_torch(torch.cat([eye * h, -eye * h], 0), grid.center())  # [12, 4, 4]
+    deriv = (mats[:6] - mats[6:])[:, :3, :] / (2 * h)  # [6, 3, 4]
+    idx = [torch.arange(n, dtype=torch.float64, device=device) for n in grid.size]
+    ii = torch.stack(torch.meshgrid(*idx, indexing="ij"), 0).reshape(3, -1)  # ITK index (x, y, z) of xyz layout
+    i2p = torch.as_tensor(grid.index_to_physical(), dtype=torch.float64, device=device)
+    pts = i2p[:3, :3] @ ii + i2p[:3, 3:]  # [3, N] LPS mm
+    flow = deriv[:, :, :3] @ pts + deriv[:, :, 3:]  # [6, 3, N]
+    return flow.reshape(6, 3, *grid.size).to(dtype)
+
+
+def fixed_jacobian(fixed: torch.Tensor, grid: Grid) -> torch.Tensor:
+    """``d fixed(W_p(x)) / dp`` at ``p = 0``: ``[B, 6, C, x, y, z]`` (per mm and per degree).
+
+    Chain rule: the physical image gradient (central differences along the array axes, mapped through the
+    grid's index-to-physical matrix) times :func:`parameter_flow`. ``fixed`` is in MONAI ``xyz`` layout on ``grid``.
+    """
+    if tuple(fixed.shape[2:]) != tuple(grid.size):
+        raise ValueError(f"fixed spatial shape {tuple(fixed.shape[2:])} does not match its grid {grid.size}")
+    g_idx = torch.gradient(fixed, dim=(2, 3, 4))  # 3 x [B, C, x, y, z] per index step
+    inv_t = np.linalg.inv(grid.index_to_physical()[:3, :3]).T  # d/d(physical) = A^-T d/d(index)
+    g_phys = [sum(float(inv_t[a, i]) * g_idx[i] for i in range(3) if inv_t[a, i] != 0.0) for a in range(3)]
+    flow = parameter_flow(grid, fixed.dtype, fixed.device)  # [6, 3, x, y, z]
+    # elementwise products (an einsum here becomes slow batched matmuls on CPU)
+    return torch.stack([sum(g_phys[a] * flow[k, a] for a in range(3)) for k in range(6)], 1)
+
+
+def gauss_newton_align(
+    moving: torch.Tensor,
+    fixed: torch.Tensor,
+    grid: Grid,
+    init: torch.Tensor,
+    iterations: int = 5,
+    weight: torch.Tensor | None = None,
+    moving_support: torch.Tensor | None = None,
+    damping: float = 1e-3,
+    max_step: tuple[float, float] = (10.0, 5.0),
+    min_voxels: int = 100,
+    robust_scale: float | None = None,
+    return_residual: bool = False,
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """Refine a fixed->moving rigid matrix so that ``moving(T(x)) ~ fixed(x)`` in least squares.
+
+    Inverse compositional update: with ``J = d fixed(W_d(x))/dd`` (constant) and residual
+    ``r = moving(T(x)) - fixed(x)``, ``d = (J^T w J + damping * diag(J^T w J))^-1 J^T w r`` and
+    ``T <- T o W_d^-1``. Differentiable with respect to both feature maps and ``init``.
+
+    Args:
+        moving: ``[B, C, x, y, z]`` moving features on ``grid`` (the *unwarped* moving volume).
+        fixed: ``[B, C, x, y, z]`` fixed features on ``grid``.
+        grid: the network grid.
+        init: ``[B, 4, 4]`` starting estimate (float64 preferred).
+        iterations: number of Gauss-Newton steps.
+        weight: optional ``[B, 1, x, y, z]`` voxel weights (e.g. a field-of-view mask); voxels that the warped
+            moving volume does not cover are always excluded.
+        moving_support: optional ``[B, 1, x, y, z]`` mask of where the moving volume has data (e.g. the CBCT
+            field of view), in moving space; warped with the estimate and thresholded.
+        damping: Levenberg-Marquardt damping relative to the diagonal.
+        max_step: trust region of one step, ``(mm, degrees)``: a step whose largest translation or rotation
+            component exceeds it is scaled down (an ill-conditioned system, e.g. a nearly empty overlap, would
+            otherwise jump by metres).
+        min_voxels: cases whose overlap has fewer weighted voxels than this keep their estimate (no step).
+        return_residual: also return the final weighted mean squared residual per case.
+        robust_scale: if set, Geman-McClure weights ``s^2 / (s^2 + r^2)`` on the per-voxel squared residual
+            (downweights CBCT truncation and artefacts).
+
+    Returns:
+        ``[B, 4, 4]`` float64 refined matrices; with ``return_residual`` also ``[B]``: the weighted mean squared
+        residual at the returned estimate (lower is a better fit).
+    """
+    if moving.shape != fixed.shape or moving.ndim != 5:
+        raise ValueError(f"moving {tuple(moving.shape)} and fixed {tuple(fixed.shape)} must be equal [B,C,x,y,z]")
+    # the Jacobian is treated as a constant in backpropagation (as the inverse-compositional scheme treats it in
+    # the forward pass); gradients reach both feature maps through the residual. Measured: 1.5-2x faster steps.
+    jac = fixed_jacobian(fixed.detach(), grid)  # [B, 6, C, ...]
+    jf = jac.flatten(2)  # [B, 6, C*N] (products in the feature dtype, the 6x6 solve in float64)
+    center = grid.center()
+    total = init.to(torch.float64)
+    support = torch.ones_like(moving[:, :1]) if moving_support is None else moving_support.to(moving.dtype)
+    for _ in range(iterations):
+        warped = warp_volume(moving, total, grid, grid)
+        cover = warp_volume(support, total, grid, grid)
+        w = (cover > 0.999).to(moving.dtype)
+        if weight is not None:
+            w = w * weight
+        r = warped - fixed  # [B, C, ...]
+        if robust_scale is not None:
+            sq = (r.detach() ** 2).sum(1, keepdim=True)
+            w = w * (robust_scale**2 / (robust_scale**2 + sq))
+        wj = jf * w.expand_as(r).flatten(1).unsqueeze(1)  # [B, 6, C*N]
+        h = (wj @ jf.transpose(1, 2)).to(torch.float64)  # [B, 6, 6]
+        g = (wj @ r.flatten(1).unsqueeze(-1)).to(torch.float64)  # [B, 6, 1]
+        diag = torch.diagonal(h, dim1=1, dim2=2)
+        h = h + torch.diag_embed(damping * diag + 1e-9)
+        d = torch.linalg.solve(h, g).squeeze(-1)  # [B, 6]
+        scale = torch.maximum(d[:, :3].abs().amax(1) / max_step[0], d[:, 3:].abs().amax(1) / max_step[1])
+        enough = w.flatten(1).sum(1).to(torch.float64) >= min_voxels
+        d = torch.where(enough[:, None], d / scale.clamp_min(1.0)[:, None], torch.zeros_like(d))
+        step = params_to_matrix_torch(d, center)
+        total = total @ torch.linalg.inv(step)
+    if not return_residual:
+        return total
+    warped = warp_volume(moving, total, grid, grid)
+    w = (warp_volume(support, total, grid, grid) > 0.999).to(moving.dtype)
+    if weight is not None:
+        w = w * weight
+    res = (w * (warped - fixed) ** 2).sum(dim=(1, 2, 3, 4)) / (w.sum(dim=(1, 2, 3, 4)) * moving.shape[1] + 1e-6)
+    return total, res
+
+
+def gradient_magnitude(volume: torch.Tensor, eps: float = 0.0) -> torch.Tensor:
+    """Magnitude of the central-difference gradient over the last three axes (per voxel step).
+
+    ``sqrt(sum_i g_i^2 + eps)``: with ``eps > 0`` it is differentiable at flat regions too.
+    """
+    grads = torch.gradient(volume, dim=(-3, -2, -1))
+    return torch.sqrt(sum(g * g for g in grads) + eps)
+
+
+def _local_mean(volume: torch.Tensor, mask: torch.Tensor, sigma_vox: Sequence[float]) -> torch.Tensor:
+    """Gaussian-weighted mean of ``volume`` over ``mask`` (normalized convolution), sigma in voxels.
+
+    A smooth quantity, so it is computed on a grid pooled by up to 4 (sigma >= 2 voxels there) and upsampled
+    trilinearly: about 5x cheaper than the full-resolution filter at sigma 8 voxels.
+    """
+    from monai.networks.layers import GaussianFilter
+
+    factor = max(1, min(4, int(min(sigma_vox) // 2)))
+    num, den = volume * mask, mask
+    if factor > 1:
+        num, den = F.avg_pool3d(num, factor, ceil_mode=True), F.avg_pool3d(den, factor, ceil_mode=True)
+    blur = GaussianFilter(3, [s / factor for s in sigma_vox]).to(volume.device)
+    mean = blur(num) / blur(den).clamp_min(1e-3)
+    if factor > 1:
+        mean = F.interpolate(mean, size=volume.shape[2:], mode="trilinear", align_corners=False)
+    return mean
+
+
+def alignment_features(
+    volume: torch.Tensor,
+    spacing: Sequence[float],
+    support_threshold: float = 1e-3,
+    highpass_sigma_mm: float = 16.0,
+    highpass_weight: float = 3.0,
+    gradient_weight: float = 0.0,
+) -> torch.Tensor:
+    """Contrast-robust feature maps for the Gauss-Newton stage: ``[N, C, x, y, z]`` -> ``[N, C * k, x, y, z]``.
+
+    The channels are the input intensity, ``highpass_weight`` times its local contrast (the intensity minus its
+    Gaussian mean over the voxels that hold data, a normalized convolution, so the CBCT field-of-view edge and the
+    air around the body do not leak in) and, optionally, ``gradient_weight`` times its gradient magnitude (per voxel
+    step; off by default: it did not add accuracy on top of the local contrast); a weight of 0 drops that channel.
+
+    Why: aligning raw intensities pulls the estimate towards matching the CBCT's low-frequency errors (scatter
+    cupping, beam hardening) with the CT. ``benchmarks/bench_alignment_features.py`` measures the choice on a
+    paper-protocol set (64^3 grid at 2 mm): on the bundle's validation cases the mean TRE drops from about 2.6 mm
+    with intensities alone to about 0.6 mm with the local-contrast channel at the defaults.
+
+    Args:
+        volume: ``[N, C, x, y, z]`` normalized volumes (0 = no data / air).
+        spacing: grid spacing in mm (converts ``highpass_sigma_mm`` to voxels).
+        support_threshold: intensity above which a voxel holds data.
+        highpass_sigma_mm: Gaussian sigma of the local mean (mm).
+        highpass_weight, gradient_weight: channel weights.
+    """
+    out = [volume]
+    if highpass_weight != 0:
+        mask = (volume > support_threshold).to(volume.dtype)
+        local_mean = _local_mean(volume, mask, [float(highpass_sigma_mm) / float(s) for s in spacing])
+        out.append(highpass_weight * (volume - local_mean) * mask)
+    if gradient_weight != 0:
+        out.append(gradient_weight * gradient_magnitude(volume, eps=1e-6))
+    return torch.cat(out, 1)
+
+
+def pyramid(volume: torch.Tensor, grid: Grid, factor: int) -> tuple[torch.Tensor, Grid]:
+    """Average-pool ``volume`` by ``factor`` and return it with its grid (same centre)."""
+    if factor == 1:
+        return volume, grid
+    pooled = F.avg_pool3d(volume, factor)
+    g = Grid.centered(pooled.shape[2:], [s * factor for s in grid.spacing], grid.center())
+    return pooled, g
