@@ -149,3 +149,25 @@ def test_antialias_suppresses_aliased_noise_and_keeps_smooth_content():
     torch.testing.assert_close(out[:, 10:-10, 10:-10, 10:-10], x[:, 10:-10, 10:-10, 10:-10], atol=1e-2, rtol=0)
     # nothing to do when the input is not finer than the grid
     assert antialias_for_grid(x, Grid.centered((64,) * 3, (4.0,) * 3, (0, 0, 0)), fine) is x
+
+
+def test_antialias_crops_to_the_grid_without_changing_values():
+    """Only the part of a large fine image that the network grid covers is filtered: same values as filtering and
+    sampling the whole image, on an oblique input and an off-centre grid."""
+    from monai.data import MetaTensor
+
+    from monai_rigidreg.transforms.grid import antialias_for_grid, crop_to_grid
+    from monai_rigidreg.transforms.utils import resample_physical
+
+    fine = Grid((72, 64, 60), (1.0, 1.2, 1.5), (-40.0, -35.0, -42.0),
+                tuple(rotation_matrix(*np.deg2rad([5.0, -8.0, 12.0])).ravel()))
+    gen = torch.Generator().manual_seed(1)
+    vol = torch.randn(1, *fine.size, generator=gen) * 100.0
+    out_grid = Grid.centered((8, 8, 8), (4.0,) * 3, (6.0, -4.0, 3.0))  # 32 mm cube inside a ~70 mm volume
+    crop, sub = crop_to_grid(vol, fine, out_grid, margin=7)
+    assert crop.numel() < 0.5 * vol.numel()
+    img = MetaTensor(vol, affine=torch.as_tensor(fine.affine("RAS")))
+    got = ResampleToNetworkGrid(size=8, spacing=4.0, antialias=True, padding_value=0.0)(img, grid=out_grid)
+    ref = resample_physical(antialias_for_grid(vol, fine, out_grid), np.eye(4), out_grid, fine, "bilinear", "zeros",
+                            0.0)
+    torch.testing.assert_close(torch.as_tensor(got), torch.as_tensor(ref), atol=1e-3, rtol=1e-4)
