@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import SimpleITK as sitk
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from monai_rigidreg.errors import InputError
@@ -30,9 +31,11 @@ from monai_rigidreg.geometry import (
     matrix_to_params,
     params_to_matrix,
     params_to_sitk,
+    recenter_params,
     target_registration_error,
 )
 from monai_rigidreg.io import as_image, grids_overlap, resample, sitk_to_metatensor
+from monai_rigidreg.networks.alignment import gradient_magnitude
 from monai_rigidreg.warp import warp_volume_params
 
 __all__ = [
@@ -52,6 +55,10 @@ logger = logging.getLogger(__name__)
 
 CONFIDENCE_THRESHOLD = 0.5
 """Results whose confidence falls below this are flagged as likely failures (see :func:`confidence_score`)."""
+LOCAL_GAIN_LIMIT = 0.01
+"""Edge-alignment gain (see :func:`confidence_score`) above which an estimate is treated as likely wrong."""
+EDGE_SPACING_MM = 4.0
+"""Resolution (mm) at which :meth:`RigidRegistrar.assess` compares edges (finer network grids are pooled to it)."""
 
 
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
@@ -156,12 +163,9 @@ def fov_ncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
     return float((x * y).sum() / (x.norm() * y.norm() + 1e-12))
 
 
-def gradient_magnitude(volume: torch.Tensor) -> torch.Tensor:
-    """Magnitude of the central-difference gradient of an ``[x, y, z]`` volume (per voxel)."""
-    return torch.stack(torch.gradient(volume, dim=(-3, -2, -1)), 0).norm(dim=0)
-
-
-def confidence_score(local_gain: float, swap_tre_mm: float, gain_ref: float = 0.01, tre_ref_mm: float = 3.0) -> float:
+def confidence_score(
+    local_gain: float, swap_tre_mm: float, gain_ref: float = LOCAL_GAIN_LIMIT, tre_ref_mm: float = 3.0
+) -> float:
     """Combine two failure signals into a score in [0, 1] (below 0.5: flagged).
 
     * ``local_gain``: how much the edge alignment (NCC of gradient magnitudes in the field of view) improves when
@@ -222,9 +226,15 @@ class RigidRegistrar:
         return cls(net, device=device, **settings)
 
     # -- stages ------------------------------------------------------------------------------------------------
-    def network_grid(self, fixed: sitk.Image) -> Grid:
-        """The network grid: axis-aligned LPS, centred on the fixed image centre."""
-        return Grid.centered(self.network_size, self.network_spacing, Grid.from_sitk(fixed).center())
+    def network_grid(self, fixed: sitk.Image, moving: sitk.Image | None = None) -> Grid:
+        """The network grid: axis-aligned LPS, centred on the CBCT (moving) centre, else on the fixed image centre.
+
+        Centring on the CBCT keeps its field of view on the grid when the CT is much larger or the CBCT is off the
+        CT centre (clinical geometry); in the simulated training pairs both centres are the isocentre. Estimates
+        on this grid are about its centre; :meth:`__call__` re-expresses them about the fixed image centre.
+        """
+        ref = fixed if moving is None else moving
+        return Grid.centered(self.network_size, self.network_spacing, Grid.from_sitk(ref).center())
 
     def preprocess(self, image: sitk.Image, grid: Grid) -> torch.Tensor:
         """``[1, x, y, z]`` normalized tensor of ``image`` on the network grid (the training preprocessing)."""
@@ -253,7 +263,10 @@ class RigidRegistrar:
         magnitudes), ``local_gain`` and ``swap_tre_mm`` (see :func:`confidence_score`) and ``confidence``.
         """
         p0 = np.asarray(params, dtype=np.float64)
-        steps = [0.5 * min(grid.spacing)] * 3 + [2.0] * 3
+        # edges are compared at about 4 mm (the grid pooled by ``factor``), where the gain threshold was calibrated:
+        # finer grids see CBCT/CT edge differences (noise, blur) that shift the edge optimum by a fraction of a voxel
+        factor = max(1, int(round(EDGE_SPACING_MM / min(grid.spacing))))
+        steps = [0.5 * min(grid.spacing) * factor] * 3 + [2.0] * 3
         candidates = [p0]
         for i, step in enumerate(steps):
             for sign in (-1.0, 1.0):
@@ -266,15 +279,27 @@ class RigidRegistrar:
             batch = torch.as_tensor(np.stack(candidates), dtype=torch.float32)
             moved = warp_volume_params(moving_t[None].float().expand(len(candidates), -1, -1, -1, -1), batch, grid)
             fov_w = warp_volume_params(fov[None, None].float(), batch[:1], grid, mode="nearest")[0, 0]
+            out = {"ncc_before": fov_ncc(moving_t[0], fixed_f, fov), "ncc_after": fov_ncc(moved[0, 0], fixed_f, fov_w)}
+            # away from the field-of-view border: the CBCT's own edge there (data to zero) is no anatomy, and the
+            # candidates move it by up to a pooled voxel (erosion radius: that step plus the gradient stencil)
+            r = 2 * factor + 1
+            fov_e = -F.max_pool3d(-fov_w[None, None].float(), 2 * r + 1, 1, r)[0, 0]
+            if factor > 1:
+                fixed_f = F.avg_pool3d(fixed_f[None, None], factor)[0, 0]
+                moved = F.avg_pool3d(moved, factor)
+                fov_e = (F.avg_pool3d(fov_e[None, None], factor)[0, 0] > 0.999).to(fov_w.dtype)
             edges_f = gradient_magnitude(fixed_f)
             edges_m = gradient_magnitude(moved[:, 0])
-            out = {"ncc_before": fov_ncc(moving_t[0], fixed_f, fov), "ncc_after": fov_ncc(moved[0, 0], fixed_f, fov_w)}
-            scores = [fov_ncc(edges_m[k], edges_f, fov_w) for k in range(len(candidates))]
+            scores = [fov_ncc(edges_m[k], edges_f, fov_e) for k in range(len(candidates))]
         edge, best = scores[0], max(scores)
         out["edge_ncc"] = edge
         out["local_gain"] = float(best - edge)
         if swap:
-            swapped = self.estimate(fixed_t, moving_t, grid)
+            # the CT restricted to the CBCT's field of view as placed by the estimate: a network with a fine stage
+            # aligns only where its moving input has data, so an unmasked CT (data everywhere) against a truncated
+            # CBCT would bias the swapped estimate even when the forward one is right
+            masked_fixed = fixed_t * (fov_w > 0.5).to(fixed_t.dtype)[None]
+            swapped = self.estimate(masked_fixed, moving_t, grid)
             inv = matrix_to_params(invert_matrix(params_to_matrix(swapped, grid.center())), grid.center())
             out["swap_tre_mm"] = float(target_registration_error(params, inv, grid_points(grid, 4),
                                                                  center=grid.center()))
@@ -310,7 +335,7 @@ class RigidRegistrar:
             fov_img = cylindrical_fov_mask(moving_img) if moving_fov is None else moving_fov
 
         t = time.perf_counter()
-        grid = self.network_grid(fixed_img)
+        grid = self.network_grid(fixed_img, moving_img)
         fixed_t = self.preprocess(fixed_img, grid)
         moving_t = self.preprocess(moving_img, grid)
         timings["preprocess"] = time.perf_counter() - t
@@ -324,16 +349,30 @@ class RigidRegistrar:
                                    "cascade_steps": self.cascade_steps if cascade_steps is None else cascade_steps,
                                    "device": str(self.device)}
 
+        fov_t = None
+        if refine or assess:
+            fov_t = torch.as_tensor(self._resampler(sitk_to_metatensor(fov_img), grid=grid, mode="nearest",
+                                                    padding_value=0.0))[0]
         if refine:
             from monai_rigidreg.classical import register_sitk
 
             t = time.perf_counter()
             res = register_sitk(fixed_img, moving_img, initial_params=net_params, center=center, moving_mask=fov_img,
                                 shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0))
+            start = "network"
+            # safeguard: a network estimate that looks wrong can drag the optimizer into a wrong basin; then the
+            # optimizer also starts from the identity and the lower (better) Mattes MI value wins
+            pre = self.assess(moving_t, fixed_t, grid, net_params, fov_t, swap=False)
+            if pre["local_gain"] > LOCAL_GAIN_LIMIT:
+                alt = register_sitk(fixed_img, moving_img, initial_params=np.zeros(6), center=center,
+                                    moving_mask=fov_img, shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0))
+                if alt.metric < res.metric:
+                    res, start = alt, "identity"
             params = res.params
             timings["refine"] = time.perf_counter() - t
             change = params - net_params
             details["refine"] = {
+                "start": start,
                 "change": {n: float(v) for n, v in zip(PARAM_NAMES, change)},
                 "change_tre_mm": float(target_registration_error(params, net_params, grid_points(grid, 4),
                                                                  center=center)),
@@ -344,8 +383,6 @@ class RigidRegistrar:
         confidence, flagged = float("nan"), False
         if assess:
             t = time.perf_counter()
-            fov_t = torch.as_tensor(self._resampler(sitk_to_metatensor(fov_img), grid=grid, mode="nearest",
-                                                    padding_value=0.0))[0]
             signals = self.assess(moving_t, fixed_t, grid, params, fov_t)
             timings["confidence"] = time.perf_counter() - t
             confidence = signals.pop("confidence")
@@ -360,8 +397,15 @@ class RigidRegistrar:
             t = time.perf_counter()
             registered = resample(moving_img, fixed_img, params_to_sitk(params, center))
             timings["resample"] = time.perf_counter() - t
+        # report about the fixed image centre (the project's convention); the network grid may be centred elsewhere
+        fixed_center = Grid.from_sitk(fixed_img).center()
+        params = recenter_params(params, center, fixed_center)
+        net_fixed = recenter_params(net_params, center, fixed_center)
+        details["network_params"] = {n: float(v) for n, v in zip(PARAM_NAMES, net_fixed)}
+        if "refine" in details:
+            details["refine"]["change"] = {n: float(v) for n, v in zip(PARAM_NAMES, params - net_fixed)}
         timings["total"] = time.perf_counter() - t_start
-        return RegistrationResult(params, center, registered, timings, confidence, flagged, details)
+        return RegistrationResult(params, fixed_center, registered, timings, confidence, flagged, details)
 
 
 _DEFAULT_REGISTRARS: dict[tuple[str, str], RigidRegistrar] = {}
