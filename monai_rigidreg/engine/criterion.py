@@ -87,8 +87,8 @@ class RegistrationCriterion(nn.Module):
         total = terms.total
         coarse = getattr(self._network[0], "last_coarse", None) if self._network else None
         if coarse is not None and self.w_coarse != 0 and targets.get("params") is not None:
-            # supervise the regression stage of a network with an alignment stage too: the fine stage's output
-            # depends only weakly on its start, so without this term the coarse estimate would hardly learn
+            # supervise the regression stage of a network with an alignment stage: the fine stage starts from a
+            # detached copy of it, so this term is what trains the regression
             sup_coarse = self.loss.sup_term(coarse, targets["params"], self.grid)
             self.last_terms["coarse"] = float(sup_coarse.detach())
             total = total + self.w_coarse * sup_coarse

@@ -18,6 +18,7 @@ from torch import nn
 
 from monai_rigidreg.geometry import Grid, matrix_to_params_torch, params_to_matrix_torch
 from monai_rigidreg.networks.alignment import alignment_features, gauss_newton_align, pyramid
+from monai_rigidreg.warp import warp_volume
 
 __all__ = ["DualEncoderRigidNet", "FUSIONS"]
 
@@ -129,8 +130,9 @@ class DualEncoderRigidNet(nn.Module):
     Two stages (when ``align_iterations`` is given): the regression above gives a coarse estimate (kept in
     ``last_coarse`` for the training loss), then the fine stage aligns contrast-robust feature maps of both volumes
     (intensity and local contrast) by coarse-to-fine Gauss-Newton steps restricted to the moving
-    image's support (the CBCT field of view). The fine stage has no trainable weights but is differentiable, so
-    the loss on the final estimate reaches the regression through it. Measured reason for fixed features: learned
+    image's support (the CBCT field of view). The fine stage has no trainable weights; it is differentiable with
+    respect to the images, but its start is detached, so the regression learns from its own supervised term
+    (:class:`~monai_rigidreg.engine.RegistrationCriterion` ``w_coarse``). Measured reason for fixed features: learned
     feature channels trained through the (detached-Jacobian) Gauss-Newton steps degraded the validation TRE of the
     untrained stage from 2.6 mm to 15 mm within one CPU epoch, while the fixed features reach about 0.6 mm
     (``benchmarks/bench_alignment_features.py``). With a fine stage the module is exported to TorchScript by
@@ -309,7 +311,10 @@ class DualEncoderRigidNet(nn.Module):
         # two starts, the regression estimate and the identity, run through the first level together; per case
         # the one with the lower residual goes on (the regression can only widen the capture range, never spoil
         # a case the Gauss-Newton stage captures on its own)
-        starts = torch.cat([params_to_matrix_torch(coarse.to(torch.float64), grid.center()),
+        # The start is detached: the regression learns from its own supervised term only. Measured: letting the loss
+        # on the final estimate reach it through the Gauss-Newton steps made CPU training diverge within two epochs
+        # (the regression saturated at its tanh bounds and stayed there).
+        starts = torch.cat([params_to_matrix_torch(coarse.detach().to(torch.float64), grid.center()),
                             torch.eye(4, dtype=torch.float64, device=coarse.device).expand(b, 4, 4)], 0)
         total = starts
         first = True
@@ -323,7 +328,10 @@ class DualEncoderRigidNet(nn.Module):
                 fm2, ff2, sup2 = fm.repeat(2, 1, 1, 1, 1), ff.repeat(2, 1, 1, 1, 1), sup.repeat(2, 1, 1, 1, 1)
                 both, res = gauss_newton_align(fm2, ff2, g, total, iterations=iters, moving_support=sup2,
                                                robust_scale=self.align_robust_scale, return_residual=True)
-                pick = (res[:b] <= res[b:]).view(b, 1, 1)
+                # a start that leaves little overlap can show a low mean residual: it must keep at least half the
+                # overlap of the identity start to be preferred
+                cover = (warp_volume(sup2, both, g, g) > 0.999).flatten(1).to(res.dtype).mean(1)
+                pick = ((res[:b] <= res[b:]) & (cover[:b] >= 0.5 * cover[b:])).view(b, 1, 1)
                 total = torch.where(pick, both[:b], both[b:])
                 self.last_start = pick.view(b).detach()
                 first = False
