@@ -138,8 +138,10 @@ def test_inference_registers_offline_and_exports(bundle_copy, tiny_dataset, tmp_
     cfg[1] = str(tmp_path / "meta.json")
     run_bundle(["verify_net_in_out", "network_def", *cfg, "--n", "1", "--any", "32"], bundle_copy)
     ts = tmp_path / "model.ts"
+    # the alignment stage builds its grid from the input shape: exported by tracing at the network grid size
     run_bundle(["ckpt_export", "network_def", "--filepath", str(ts), "--ckpt_file",
-                str(bundle_copy / "models" / "model.pt"), *cfg], bundle_copy)
+                str(bundle_copy / "models" / "model.pt"), "--use_trace", "True", "--input_shape", "[1, 2, 32, 32, 32]",
+                *cfg], bundle_copy)
     import torch
 
     scripted = torch.jit.load(str(ts))

@@ -154,13 +154,8 @@ def fast_pair(tmp_path_factory):
     return simulate_pair(tmp_path_factory.mktemp("fast_pair"), phantom="shepp-logan-asym", params=MOTION, seed=4)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 6 open: the shipped weights are an early 13-minute CPU run that does not yet recover the motion "
-    "(bundles/cbct_ct_rigid/docs/README.md); strict: remove this marker when better weights make the test pass",
-)
 def test_shipped_model_recovers_known_motion(fast_pair):
-    """The shipped bundle weights on a simulated pair (network + cascade, then with refinement)."""
+    """The shipped bundle weights on a simulated pair (network, then with refinement)."""
     pair = fast_pair
     try:
         res = register(pair["fixed"], pair["moving"], device="cpu", resample_moving=False)
@@ -174,5 +169,7 @@ def test_shipped_model_recovers_known_motion(fast_pair):
     res_r = register(pair["fixed"], pair["moving"], device="cpu", refine=True, resample_moving=False)
     tre_ref = target_registration_error(res_r.params, MOTION, pts, center=res_r.center)
     initial = target_registration_error(np.zeros(6), MOTION, pts, center=res.center)
-    assert tre_net < 0.5 * initial
+    assert initial > 10.0
+    assert tre_net < 2.0  # measured about 0.9 mm on this coarse pair (CT 4 mm, CBCT 5 mm voxels)
+    assert not res.flagged  # a right answer is not flagged
     assert tre_ref < 2.0
