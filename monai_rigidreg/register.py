@@ -35,7 +35,7 @@ from monai_rigidreg.geometry import (
     target_registration_error,
 )
 from monai_rigidreg.io import as_image, grids_overlap, resample, sitk_to_metatensor
-from monai_rigidreg.networks.alignment import gradient_magnitude
+from monai_rigidreg.networks.alignment import gradient_magnitude, pyramid
 from monai_rigidreg.warp import warp_volume_params
 
 __all__ = [
@@ -275,20 +275,20 @@ class RigidRegistrar:
                 candidates.append(q)
         with torch.no_grad():
             fixed_f = fixed_t[0].float()
-            # all candidates in one batched warp (float32): [13, 1, x, y, z]
             batch = torch.as_tensor(np.stack(candidates), dtype=torch.float32)
-            moved = warp_volume_params(moving_t[None].float().expand(len(candidates), -1, -1, -1, -1), batch, grid)
+            moved0 = warp_volume_params(moving_t[None].float(), batch[:1], grid)[0, 0]
             fov_w = warp_volume_params(fov[None, None].float(), batch[:1], grid, mode="nearest")[0, 0]
-            out = {"ncc_before": fov_ncc(moving_t[0], fixed_f, fov), "ncc_after": fov_ncc(moved[0, 0], fixed_f, fov_w)}
+            out = {"ncc_before": fov_ncc(moving_t[0], fixed_f, fov), "ncc_after": fov_ncc(moved0, fixed_f, fov_w)}
             # away from the field-of-view border: the CBCT's own edge there (data to zero) is no anatomy, and the
             # candidates move it by up to a pooled voxel (erosion radius: that step plus the gradient stencil)
             r = 2 * factor + 1
-            fov_e = -F.max_pool3d(-fov_w[None, None].float(), 2 * r + 1, 1, r)[0, 0]
-            if factor > 1:
-                fixed_f = F.avg_pool3d(fixed_f[None, None], factor)[0, 0]
-                moved = F.avg_pool3d(moved, factor)
-                fov_e = (F.avg_pool3d(fov_e[None, None], factor)[0, 0] > 0.999).to(fov_w.dtype)
-            edges_f = gradient_magnitude(fixed_f)
+            fov_e = -F.max_pool3d(-fov_w[None, None], 2 * r + 1, 1, r)
+            # all candidates in one batched warp of the pooled volume on the pooled grid: [13, 1, x, y, z]
+            moving_p, grid_p = pyramid(moving_t[None].float(), grid, factor)
+            fixed_p, _ = pyramid(fixed_f[None, None], grid, factor)
+            fov_e = (pyramid(fov_e, grid, factor)[0][0, 0] > 0.999).to(fov_w.dtype)
+            moved = warp_volume_params(moving_p.expand(len(candidates), -1, -1, -1, -1), batch, grid_p)
+            edges_f = gradient_magnitude(fixed_p[0, 0])
             edges_m = gradient_magnitude(moved[:, 0])
             scores = [fov_ncc(edges_m[k], edges_f, fov_e) for k in range(len(candidates))]
         edge, best = scores[0], max(scores)
