@@ -21,7 +21,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from monai_rigidreg.geometry import Grid, params_to_matrix_torch
+from monai_rigidreg.geometry import Grid, grid_points, params_to_matrix_torch
 from monai_rigidreg.warp import warp_volume
 
 __all__ = [
@@ -45,10 +45,8 @@ def parameter_flow(grid: Grid, dtype: torch.dtype = torch.float64, device: torch
     eye = torch.eye(6, dtype=torch.float64, device=device)
     mats = params_to_matrix_torch(torch.cat([eye * h, -eye * h], 0), grid.center())  # [12, 4, 4]
     deriv = (mats[:6] - mats[6:])[:, :3, :] / (2 * h)  # [6, 3, 4]
-    idx = [torch.arange(n, dtype=torch.float64, device=device) for n in grid.size]
-    ii = torch.stack(torch.meshgrid(*idx, indexing="ij"), 0).reshape(3, -1)  # ITK index (x, y, z) of xyz layout
-    i2p = torch.as_tensor(grid.index_to_physical(), dtype=torch.float64, device=device)
-    pts = i2p[:3, :3] @ ii + i2p[:3, 3:]  # [3, N] LPS mm
+    # LPS mm of every voxel centre, in the xyz (index-major) order of the volume
+    pts = torch.as_tensor(grid_points(grid, 1).T, dtype=torch.float64, device=device)  # [3, N]
     flow = deriv[:, :, :3] @ pts + deriv[:, :, 3:]  # [6, 3, N]
     return flow.reshape(6, 3, *grid.size).to(dtype)
 

@@ -23,7 +23,7 @@ from monai.data.meta_obj import get_track_meta
 from monai.transforms import InvertibleTransform, MapTransform, ScaleIntensityRange, ScaleIntensityRanged
 from monai.utils import TraceKeys, convert_to_dst_type, convert_to_tensor, ensure_tuple, ensure_tuple_rep
 
-from monai_rigidreg.geometry import Grid
+from monai_rigidreg.geometry import Grid, transform_points
 from monai_rigidreg.transforms.utils import PaddingValue, as_matrix, grid_of, resample_physical
 
 __all__ = [
@@ -176,10 +176,8 @@ def crop_to_grid(img: torch.Tensor, in_grid: Grid, out_grid: Grid, margin: int) 
     """
     corners = np.array([[i, j, k] for i in (0, out_grid.size[0] - 1) for j in (0, out_grid.size[1] - 1)
                         for k in (0, out_grid.size[2] - 1)], dtype=np.float64)
-    o2p = out_grid.index_to_physical()
-    phys = corners @ o2p[:3, :3].T + o2p[:3, 3]
-    p2i = np.linalg.inv(in_grid.index_to_physical())
-    idx = phys @ p2i[:3, :3].T + p2i[:3, 3]
+    phys = transform_points(out_grid.index_to_physical(), corners)
+    idx = transform_points(np.linalg.inv(in_grid.index_to_physical()), phys)
     lo = np.maximum(np.floor(idx.min(0)).astype(int) - 1 - margin, 0)
     hi = np.minimum(np.ceil(idx.max(0)).astype(int) + 2 + margin, np.array(in_grid.size))
     if np.any(hi <= lo):  # no overlap: nothing to save, the caller pads
@@ -187,8 +185,7 @@ def crop_to_grid(img: torch.Tensor, in_grid: Grid, out_grid: Grid, margin: int) 
     if np.prod(hi - lo) > 0.8 * np.prod(in_grid.size):
         return img, in_grid
     crop = img[:, lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-    i2p = in_grid.index_to_physical()
-    origin = tuple(float(v) for v in i2p[:3, :3] @ lo + i2p[:3, 3])
+    origin = tuple(float(v) for v in transform_points(in_grid.index_to_physical(), lo)[0])
     return crop, Grid(tuple(int(v) for v in hi - lo), in_grid.spacing, origin, in_grid.direction)
 
 
