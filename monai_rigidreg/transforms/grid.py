@@ -151,12 +151,17 @@ class ResampleToNetworkGrid(InvertibleTransform):
         return _undo(self, data, transform, self.padding_value, self.padding_mode)
 
 
+def antialias_sigmas(in_grid: Grid, out_grid: Grid) -> list[float]:
+    """Per index axis of ``in_grid``, the Gaussian sigma (voxels) of :func:`antialias_for_grid`:
+    (ratio - 1) / 2 with ratio = min(out spacing) / in spacing, 0 where the input is not finer."""
+    target = float(min(out_grid.spacing))
+    return [max(0.0, (target / s - 1.0) / 2.0) for s in in_grid.spacing]
+
+
 def antialias_for_grid(img: torch.Tensor, in_grid: Grid, out_grid: Grid) -> torch.Tensor:
     """Gaussian pre-filter of a ``[C, x, y, z]`` image on ``in_grid`` before sampling it onto a coarser
-    ``out_grid``: per index axis, sigma = (ratio - 1) / 2 voxels with ratio = min(out spacing) / in spacing (no
-    smoothing where the input is not finer). Returns ``img`` itself when nothing needs smoothing."""
-    target = float(min(out_grid.spacing))
-    sigmas = [max(0.0, (target / s - 1.0) / 2.0) for s in in_grid.spacing]
+    ``out_grid`` (sigmas of :func:`antialias_sigmas`). Returns ``img`` itself when nothing needs smoothing."""
+    sigmas = antialias_sigmas(in_grid, out_grid)
     if max(sigmas) < 0.25:
         return img
     from monai.transforms import GaussianSmooth
@@ -203,8 +208,7 @@ def _resample_and_push(
     # about 8x less smoothing work); the margin covers the Gaussian's truncation radius (4 sigma)
     sample_grid = in_grid
     if getattr(xform, "antialias", False) and mode == "bilinear":
-        target = float(min(grid.spacing))
-        margin = int(np.ceil(4.0 * max(max(0.0, (target / s - 1.0) / 2.0) for s in in_grid.spacing))) + 1
+        margin = int(np.ceil(4.0 * max(antialias_sigmas(in_grid, grid)))) + 1
         raw, sample_grid = crop_to_grid(raw, in_grid, grid, margin)
         raw = antialias_for_grid(raw, sample_grid, grid)
     out = resample_physical(raw, np.eye(4), grid, sample_grid, mode, padding_mode, padding_value)
