@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 import SimpleITK as sitk
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from monai_rigidreg.errors import InputError
@@ -35,7 +34,7 @@ from monai_rigidreg.geometry import (
     target_registration_error,
 )
 from monai_rigidreg.io import as_image, grids_overlap, resample, sitk_to_metatensor
-from monai_rigidreg.networks.alignment import gradient_magnitude, pyramid
+from monai_rigidreg.networks.alignment import erode, gradient_magnitude, pyramid
 from monai_rigidreg.warp import warp_volume_params
 
 __all__ = [
@@ -282,7 +281,7 @@ class RigidRegistrar:
             # away from the field-of-view border: the CBCT's own edge there (data to zero) is no anatomy, and the
             # candidates move it by up to a pooled voxel (erosion radius: that step plus the gradient stencil)
             r = 2 * factor + 1
-            fov_e = -F.max_pool3d(-fov_w[None, None], 2 * r + 1, 1, r)
+            fov_e = erode(fov_w[None, None], (r, r, r))
             # all candidates in one batched warp of the pooled volume on the pooled grid: [13, 1, x, y, z]
             moving_p, grid_p = pyramid(moving_t[None].float(), grid, factor)
             fixed_p, _ = pyramid(fixed_f[None, None], grid, factor)

@@ -26,6 +26,7 @@ from monai_rigidreg.warp import warp_volume
 
 __all__ = [
     "alignment_features",
+    "erode",
     "fixed_jacobian",
     "gauss_newton_align",
     "gradient_magnitude",
@@ -80,7 +81,7 @@ def gauss_newton_align(
     min_voxels: int = 100,
     robust_scale: float | None = None,
     return_residual: bool = False,
-) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Refine a fixed->moving rigid matrix so that ``moving(T(x)) ~ fixed(x)`` in least squares.
 
     Inverse compositional update: with ``J = d fixed(W_d(x))/dd`` (constant) and residual
@@ -102,13 +103,14 @@ def gauss_newton_align(
             component exceeds it is scaled down (an ill-conditioned system, e.g. a nearly empty overlap, would
             otherwise jump by metres).
         min_voxels: cases whose overlap has fewer weighted voxels than this keep their estimate (no step).
-        return_residual: also return the final weighted mean squared residual per case.
+        return_residual: also return the final weighted mean squared residual and the overlap per case.
         robust_scale: if set, Geman-McClure weights ``s^2 / (s^2 + r^2)`` on the per-voxel squared residual
             (downweights CBCT truncation and artefacts).
 
     Returns:
-        ``[B, 4, 4]`` float64 refined matrices; with ``return_residual`` also ``[B]``: the weighted mean squared
-        residual at the returned estimate (lower is a better fit).
+        ``[B, 4, 4]`` float64 refined matrices; with ``return_residual`` also two ``[B]`` tensors at the returned
+        estimate: the weighted mean squared residual (lower is a better fit) and the overlap, the fraction of the
+        grid that the warped ``moving_support`` covers.
     """
     if moving.shape != fixed.shape or moving.ndim != 5:
         raise ValueError(f"moving {tuple(moving.shape)} and fixed {tuple(fixed.shape)} must be equal [B,C,x,y,z]")
@@ -143,11 +145,24 @@ def gauss_newton_align(
     if not return_residual:
         return total
     warped = warp_volume(moving, total, grid, grid)
-    w = (warp_volume(support, total, grid, grid) > 0.999).to(moving.dtype)
-    if weight is not None:
-        w = w * weight
+    covered = (warp_volume(support, total, grid, grid) > 0.999).to(moving.dtype)
+    overlap = covered.flatten(1).mean(1)
+    w = covered if weight is None else covered * weight
     res = (w * (warped - fixed) ** 2).sum(dim=(1, 2, 3, 4)) / (w.sum(dim=(1, 2, 3, 4)) * moving.shape[1] + 1e-6)
-    return total, res
+    return total, res, overlap
+
+
+def erode(mask: torch.Tensor, radius: Sequence[int]) -> torch.Tensor:
+    """Erosion of ``[B, C, x, y, z]`` masks (values in [0, 1]) by a box of half-widths ``radius`` voxels per axis.
+
+    Separable 1-D min-filters; voxels outside the volume do not count (the border itself is not eroded).
+    """
+    for axis, r in enumerate(radius):
+        if r > 0:
+            kernel = [1, 1, 1]
+            kernel[axis] = 2 * int(r) + 1
+            mask = -F.max_pool3d(-mask, tuple(kernel), 1, tuple(k // 2 for k in kernel))
+    return mask
 
 
 def gradient_magnitude(volume: torch.Tensor, eps: float = 0.0) -> torch.Tensor:
