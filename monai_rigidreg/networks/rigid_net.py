@@ -133,7 +133,7 @@ class DualEncoderRigidNet(nn.Module):
     respect to the images, but its start is detached, so the regression learns from its own supervised term
     (:class:`~monai_rigidreg.engine.RegistrationCriterion` ``w_coarse``). Measured reason for fixed features: learned
     feature channels trained through the (detached-Jacobian) Gauss-Newton steps degraded the validation TRE of the
-    untrained stage from 2.6 mm to 15 mm within one CPU epoch, while the fixed features reach about 0.6 mm
+    untrained stage from 2.6 mm to 15 mm within one CPU epoch, while the fixed features reach about 0.4 mm
     (``benchmarks/bench_alignment_features.py``). With a fine stage the module is exported to TorchScript by
     tracing at a fixed grid size (scripting covers the regression-only network).
 
