@@ -299,8 +299,19 @@ def test_hu_round_trip_and_file_units(tmp_path):
     img = _read(save_volume_hu(mu, grid, tmp_path / "v.nii.gz"))
     assert np.allclose(Grid.from_sitk(img).center(), 0.0, atol=1e-5)
     assert np.allclose(img.GetDirection(), np.eye(3).ravel())
-    back = hu_to_mu(sitk.GetArrayFromImage(img).transpose(2, 1, 0))
-    assert img.GetPixelID() == sitk.sitkFloat32 and np.allclose(back, mu.numpy(), atol=1e-6)
+    stored = sitk.GetArrayFromImage(img).transpose(2, 1, 0)
+    # int16 whole HU by default (as scanners store CT): within half a HU of the exact values
+    assert img.GetPixelID() == sitk.sitkInt16
+    assert np.abs(stored - mu_to_hu(mu.numpy())).max() <= 0.5 + 1e-3
+    exact = _read(save_volume_hu(mu, grid, tmp_path / "f.nii.gz", dtype="float32"))
+    back = hu_to_mu(sitk.GetArrayFromImage(exact).transpose(2, 1, 0))
+    assert exact.GetPixelID() == sitk.sitkFloat32 and np.allclose(back, mu.numpy(), atol=1e-6)
+    # out-of-range values clip instead of wrapping around
+    one = Grid.centered((2, 2, 2), (1.0, 1.0, 1.0))
+    clipped = _read(save_volume_hu(torch.full((2, 2, 2), 10.0), one, tmp_path / "c.nii.gz"))
+    assert int(sitk.GetArrayViewFromImage(clipped).min()) == 32767
+    with pytest.raises(ValueError, match="dtype"):
+        save_volume_hu(mu, grid, tmp_path / "x.nii.gz", dtype="uint8")
 
 
 def test_shepp_logan_variants_and_random_family():
