@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import SimpleITK as sitk
 import torch
+from monai.data import MetaTensor
 from torch import nn
 
 from monai_rigidreg.errors import InputError
@@ -33,8 +34,9 @@ from monai_rigidreg.geometry import (
     recenter_params,
     target_registration_error,
 )
-from monai_rigidreg.io import as_image, grids_overlap, resample, sitk_to_metatensor
+from monai_rigidreg.io import as_image, grids_overlap, resample
 from monai_rigidreg.networks.alignment import erode, gradient_magnitude, pyramid
+from monai_rigidreg.transforms.grid import resample_to_grid
 from monai_rigidreg.warp import warp_volume_params
 
 __all__ = [
@@ -236,10 +238,24 @@ class RigidRegistrar:
         return Grid.centered(self.network_size, self.network_spacing, Grid.from_sitk(ref).center())
 
     def preprocess(self, image: sitk.Image, grid: Grid) -> torch.Tensor:
-        """``[1, x, y, z]`` normalized tensor of ``image`` on the network grid (the training preprocessing)."""
-        mt = sitk_to_metatensor(image)
-        out = self._normalize(self._resampler(mt, grid=grid))
-        return torch.as_tensor(out).float()
+        """``[1, x, y, z]`` normalized plain tensor of ``image`` on the network grid (the training preprocessing:
+        :class:`~monai_rigidreg.transforms.ResampleToNetworkGrid` then :class:`~monai_rigidreg.transforms.NormalizeHU`).
+        """
+        out = self._normalize(self._on_grid(image, grid, "bilinear", self.hu_range[0]))
+        return (out.as_tensor() if isinstance(out, MetaTensor) else out).float()
+
+    def _on_grid(self, image: sitk.Image, grid: Grid, mode: str, padding_value: float) -> torch.Tensor:
+        """``[1, x, y, z]`` float32 plain tensor of ``image`` resampled onto ``grid`` (no normalization).
+
+        The ``[z, y, x]`` array is viewed as ``[x, y, z]`` without a copy, so for a CT much larger than the grid only
+        the part the grid covers is transposed (the whole-volume copy of ``sitk_to_metatensor`` took 0.17 s for
+        256^3 on 2 CPU cores, about as long as the network).
+        """
+        if image.GetPixelID() != sitk.sitkFloat32:
+            image = sitk.Cast(image, sitk.sitkFloat32)
+        raw = torch.from_numpy(sitk.GetArrayFromImage(image)).permute(2, 1, 0)[None]
+        return resample_to_grid(raw, Grid.from_sitk(image), grid, mode, "zeros", padding_value,
+                                antialias=self._resampler.antialias)
 
     @torch.no_grad()
     def estimate(self, moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, steps: int | None = None):
@@ -350,8 +366,7 @@ class RigidRegistrar:
 
         fov_t = None
         if refine or assess:
-            fov_t = torch.as_tensor(self._resampler(sitk_to_metatensor(fov_img), grid=grid, mode="nearest",
-                                                    padding_value=0.0))[0]
+            fov_t = self._on_grid(fov_img, grid, "nearest", 0.0)[0]
         if refine:
             from monai_rigidreg.classical import register_sitk
 

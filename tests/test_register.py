@@ -99,6 +99,34 @@ def test_bad_inputs_give_clear_errors(pair, small_registrar, tmp_path):
         small_registrar(fixed, nan_img)
 
 
+def test_preprocess_matches_the_training_transforms_on_a_large_oblique_ct(small_registrar):
+    """The registrar's fast path (no whole-volume transpose, plain tensors) equals the MONAI training transforms
+    (``ResampleToNetworkGrid`` + ``NormalizeHU`` on a ``MetaTensor``), including the crop of a CT larger than the
+    grid, an oblique direction, an int16 input and the nearest-neighbour field-of-view mask."""
+    from monai_rigidreg.io import sitk_to_metatensor
+    from monai_rigidreg.transforms import NormalizeHU, ResampleToNetworkGrid
+    from monai_rigidreg.transforms.grid import crop_to_grid
+
+    rng = np.random.default_rng(0)
+    ct = sitk.GetImageFromArray(rng.integers(-1000, 1500, size=(70, 90, 80)).astype(np.int16))  # [z, y, x]
+    ct.SetSpacing((3.0, 2.5, 3.5))
+    ct.SetOrigin((-110.0, -100.0, -120.0))
+    c, s_ = np.cos(0.2), np.sin(0.2)
+    ct.SetDirection((c, -s_, 0.0, s_, c, 0.0, 0.0, 0.0, 1.0))
+    grid = Grid.centered((32, 32, 32), (5.0, 5.0, 5.0), Grid.from_sitk(ct).center() + np.array([5.0, -3.0, 2.0]))
+    fast = small_registrar.preprocess(ct, grid)
+    assert type(fast) is torch.Tensor and fast.shape == (1, 32, 32, 32) and fast.dtype == torch.float32
+    mt = sitk_to_metatensor(sitk.Cast(ct, sitk.sitkFloat32))
+    assert crop_to_grid(mt, Grid.from_sitk(ct), grid, 2)[0].numel() < 0.8 * mt.numel()  # the crop path runs
+    ref = NormalizeHU()(ResampleToNetworkGrid((32, 32, 32), (8.0, 8.0, 8.0))(mt, grid=grid))
+    np.testing.assert_allclose(fast.numpy(), torch.as_tensor(ref).numpy(), atol=1e-6)
+    mask = sitk.Cast(ct > 0, sitk.sitkUInt8)
+    fast_m = small_registrar._on_grid(mask, grid, "nearest", 0.0)
+    ref_m = ResampleToNetworkGrid((32, 32, 32), (8.0, 8.0, 8.0))(sitk_to_metatensor(mask), grid=grid, mode="nearest",
+                                                                   padding_value=0.0)
+    np.testing.assert_array_equal(fast_m.numpy(), torch.as_tensor(ref_m).numpy())
+
+
 def test_confidence_flags_deliberately_failed_registrations(pair, small_registrar):
     """The failure flag: right transforms pass, deliberately wrong ones (10-20 mm / 10-15 deg off) are flagged."""
     fixed, moving = load_volume(pair["fixed"]), load_volume(pair["moving"])
