@@ -59,9 +59,12 @@ def test_motion_conditions():
 
 def test_summary_numbers_and_files(tmp_path):
     cases = [
-        CaseResult("a", "net", [15, 0, 0, 0, 0, 0], [14, 0.5, 0, 0, 0, 0.2], 1.0, 0.1),
-        CaseResult("b", "net", [0, 15, 0, 0, 0, 0], [0, 12, 0, 0, 0, 0], 3.0, 0.3),
-        CaseResult("c", "net", [0, 0, 0, 30, 0, 0], [0, 0, 0, 29, 0, 0], 1.5, 0.2),
+        CaseResult("a", "net", [15, 0, 0, 0, 0, 0], [14, 0.5, 0, 0, 0, 0.2], 1.0, 0.1,
+                   extra={"confidence": 0.9, "flagged": False}),
+        CaseResult("b", "net", [0, 15, 0, 0, 0, 0], [0, 12, 0, 0, 0, 0], 3.0, 0.3,
+                   extra={"confidence": 0.1, "flagged": True}),
+        CaseResult("c", "net", [0, 0, 0, 30, 0, 0], [0, 0, 0, 29, 0, 0], 1.5, 0.2,
+                   extra={"confidence": 0.3, "flagged": True}),
         CaseResult("a", "sitk", [15, 0, 0, 0, 0, 0], [15, 0, 0, 0, 0, 0], 0.0, 2.0),
     ]
     s = summarize(cases)
@@ -74,12 +77,17 @@ def test_summary_numbers_and_files(tmp_path):
     assert s["net"]["success_rate"] == pytest.approx(2 / 3)
     assert s["net"]["time_median_s"] == pytest.approx(0.2)
     assert s["sitk"]["success_rate"] == 1.0
+    # the failure flag: the one failure (b) caught, one of two successes (c) a false alarm; none for sitk
+    assert s["net"]["flag"] == {"failures": 1, "failures_flagged": 1, "successes": 2, "successes_flagged": 1}
+    assert "flag" not in s["sitk"]
     text = format_report(s)
     assert "| net | Translation 1.5 cm | 2 | 0.50 ± 0.71 | 1.75 ± 1.77 | 0.00 ± 0.00 |" in text
     assert "| net | Rotation theta_x = 30 deg | 1 | 1.00 ± 0.00 |" in text
+    assert "| net | 1 | 1 | 2 | 1 |" in text
     paths = write_report(cases, tmp_path)
     rows = list(csv.DictReader(open(paths["csv"])))
     assert len(rows) == 4 and rows[1]["abs_err_ty"] == "3.0000" and rows[1]["success"] == "0"
+    assert (rows[1]["confidence"], rows[1]["flagged"]) == ("0.1000", "1") and rows[3]["flagged"] == ""
     assert json.loads(paths["json"].read_text())["summary"]["net"]["n"] == 3
 
 

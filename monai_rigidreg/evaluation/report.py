@@ -106,6 +106,16 @@ def summarize(cases: Sequence[CaseResult]) -> dict:
             "time_median_s": float(np.median(times)) if len(times) else float("nan"),
             "time_mean_s": float(np.mean(times)) if len(times) else float("nan"),
         }
+        flagged = [c for c in mc if "flagged" in c.extra]
+        if flagged:  # methods with a confidence check: how well the flag separates failures from successes
+            fails = [c for c in flagged if not c.success]
+            oks = [c for c in flagged if c.success]
+            out[method]["flag"] = {
+                "failures": len(fails),
+                "failures_flagged": sum(bool(c.extra["flagged"]) for c in fails),
+                "successes": len(oks),
+                "successes_flagged": sum(bool(c.extra["flagged"]) for c in oks),
+            }
     return out
 
 
@@ -137,6 +147,13 @@ def format_report(summary: dict) -> str:
     for method, s in summary.items():
         lines.append(f"| {method} | {s['n']} | {s['tre_mean_mm']:.2f} | {s['tre_median_mm']:.2f} | "
                      f"{100 * s['success_rate']:.0f}% | {s['time_median_s']:.2f} |")
+    flags = {m: s["flag"] for m, s in summary.items() if "flag" in s}
+    if flags:
+        lines += ["", "Failure flag (confidence < 0.5): failures caught and false alarms", "",
+                  "| method | failures | flagged failures | successes | flagged successes |", "|---|---|---|---|---|"]
+        for method, f in flags.items():
+            lines.append(f"| {method} | {f['failures']} | {f['failures_flagged']} | {f['successes']} | "
+                         f"{f['successes_flagged']} |")
     return "\n".join(lines) + "\n"
 
 
@@ -150,11 +167,14 @@ def write_report(cases: Sequence[CaseResult], output_dir: str | Path) -> dict[st
         w = csv.writer(fh)
         w.writerow(["case_id", "method", "group", *[f"true_{n}" for n in PARAM_NAMES],
                     *[f"pred_{n}" for n in PARAM_NAMES], *[f"abs_err_{n}" for n in PARAM_NAMES],
-                    "tre_mm", "success", "runtime_s"])
+                    "tre_mm", "success", "runtime_s", "confidence", "flagged"])
         for c in cases:
+            conf = c.extra.get("confidence")
             w.writerow([c.case_id, c.method, c.group, *[f"{v:.4f}" for v in c.params_true],
                         *[f"{v:.4f}" for v in c.params_pred], *[f"{v:.4f}" for v in c.abs_errors],
-                        f"{c.tre_mm:.4f}", int(c.success), f"{c.runtime_s:.4f}"])
+                        f"{c.tre_mm:.4f}", int(c.success), f"{c.runtime_s:.4f}",
+                        "" if conf is None else f"{float(conf):.4f}",
+                        "" if "flagged" not in c.extra else int(bool(c.extra["flagged"]))])
     paths["json"].write_text(json.dumps({"summary": summary, "cases": [asdict(c) for c in cases]}, indent=1),
                              encoding="utf-8")
     paths["report"].write_text(format_report(summary), encoding="utf-8")
