@@ -45,8 +45,7 @@ def parameter_flow(grid: Grid, dtype: torch.dtype = torch.float64, device: torch
     function (exact for translations; rotations to O(h^2) with h = 1e-3 degrees).
 
     It depends on the grid alone, so the last few are cached (the fine stage asks for the same network-grid
-    levels on every call: about 20 % of its CPU time at 64^3 before caching). The returned tensor is shared: do not
-    modify it in place.
+    levels on every call). The returned tensor is shared: do not modify it in place.
     """
     dev = str(torch.device(device) if device is not None else torch.device("cpu"))
     if torch.jit.is_tracing():  # a traced graph must compute it (a cached tensor would enter it as a constant)

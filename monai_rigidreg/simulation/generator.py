@@ -376,9 +376,9 @@ def save_volume_hu(mu: torch.Tensor, grid: Grid, path: str | Path, dtype: str = 
     """Write an attenuation volume ``[nx, ny, nz]`` (1/mm) as a NIfTI in HU (atomically).
 
     ``dtype="int16"`` (default) stores whole HU, clipped to the int16 range, as CT scanners and DICOM do: a
-    rounding error of at most 0.5 HU, far below the noise, for files about 3x smaller and about 4x faster to read
-    than compressed float32 (``benchmarks/bench_registration.py`` reports the reading time). ``"float32"`` keeps
-    the reconstruction's values exactly.
+    rounding error of at most 0.5 HU, far below the noise, for smaller files read in about half the time of
+    compressed float32 (``benchmarks/bench_inference_speed.py``). ``"float32"`` keeps the reconstruction's values
+    exactly.
     """
     if dtype not in ("int16", "float32"):
         raise ValueError(f"dtype must be 'int16' or 'float32', got {dtype!r}")
