@@ -16,10 +16,14 @@ import numpy as np
 
 from monai_rigidreg.errors import OutputExistsError
 
-__all__ = ["add_parser", "run", "run_demo"]
+__all__ = ["add_parser", "run", "run_demo", "DEMO_MOTION", "DEMO_SIMULATION"]
 
 DEMO_MOTION = (8.0, -5.0, 6.0, 4.0, -3.0, 7.0)
 """The demo's known motion: (tx, ty, tz) mm, (rx, ry, rz) degrees."""
+DEMO_SIMULATION: dict = {"simct_size": 128, "simct_spacing": 2.0, "cbct_size": 96, "cbct_spacing": 2.0}
+"""The demo's grids: Sim-CT 128^3 and CBCT 96^3 (a 192 mm field of view), both at the network's 2 mm, so the
+simulation takes seconds on a laptop CPU (the ``fast`` preset's 4-5 mm grids are coarser than the network grid and
+cost accuracy)."""
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -45,7 +49,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=DEMO_MOTION, refine: bool = False,
              device: str = "auto", bundle: str | Path | None = None, seed: int = 0, overwrite: bool = False,
              sim_overrides: dict | None = None) -> dict:
-    """Run the demo; returns ``{"true", "pred", "abs_error", "tre_mm", "paths", "timings"}``."""
+    """Run the demo; returns ``{"true", "pred", "abs_error", "tre_mm", "confidence", "paths", "timings"}``.
+
+    ``sim_overrides`` update :data:`DEMO_SIMULATION` (any :class:`~monai_rigidreg.simulation.SimulationConfig`
+    field, e.g. ``{"preset": "paper"}`` is not one: pass grid sizes and spacings). An existing, non-empty
+    ``output_dir`` is refused unless ``overwrite``.
+    """
     from monai_rigidreg.geometry import PARAM_NAMES, parameter_errors, target_registration_error
     from monai_rigidreg.io import load_volume
     from monai_rigidreg.register import RigidRegistrar, write_outputs
@@ -55,8 +64,8 @@ def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=D
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise OutputExistsError(out)
     t0 = time.perf_counter()
-    sim = simulate_pair(out / "data", phantom=phantom, params=list(motion), seed=seed, device=device,
-                        **(sim_overrides or {}))
+    settings = {**DEMO_SIMULATION, **(sim_overrides or {})}
+    sim = simulate_pair(out / "data", phantom=phantom, params=list(motion), seed=seed, device=device, **settings)
     t_sim = time.perf_counter() - t0
     fixed = load_volume(sim["fixed"])
     moving = load_volume(sim["moving"])
