@@ -48,7 +48,11 @@ VARIANTS: dict[str, dict] = {
     "default, support erosion 1 voxel": {"align_support_erosion_mm": 0.0},
     "default, support erosion 4 mm": {"align_support_erosion_mm": 4.0},
     "default, support erosion 16 mm": {"align_support_erosion_mm": 16.0},
-    "default, 12-8-4 iterations (the bundle's)": {"align_iterations": (12, 8, 4)},
+    "default, 12-8-4 iterations": {"align_iterations": (12, 8, 4)},
+    "default, linear intensity bias terms": {"align_bias_degree": 1},
+    "default, quadratic intensity bias terms": {"align_bias_degree": 2},
+    "default, cubic intensity bias terms": {"align_bias_degree": 3},
+    "12-8-4 + quadratic bias terms (the bundle's)": {"align_iterations": (12, 8, 4), "align_bias_degree": 2},
 }
 
 

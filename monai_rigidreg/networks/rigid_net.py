@@ -121,6 +121,13 @@ class DualEncoderRigidNet(nn.Module):
             :func:`~monai_rigidreg.networks.alignment.alignment_features` (weights 0: align intensities alone).
         align_support_erosion_mm: erosion of the moving support (the CBCT data region) before it weights the
             fine stage's residuals (mm, at least one voxel).
+        align_bias_degree: degree of the smooth intensity bias (per feature channel, a polynomial over the grid)
+            that the fine stage estimates jointly with the pose and discards, so CBCT cupping and scatter shading do
+            not pull the pose (-1: none); see :func:`~monai_rigidreg.networks.alignment.gauss_newton_align`. Used
+            from the second pyramid level on: on the coarsest level, where large motions are captured, a smooth
+            field can stand in for a shift of broad structures (measured with ``benchmarks/bench_capture_range.py``:
+            from the identity at +-30 mm/degrees, 45 % captured with bias terms on every level, 62 % without them
+            on the first, 60 % with none).
         align_robust_scale: optional Geman-McClure scale of the fine stage's residuals (None: plain least squares).
         grid_spacing: network-grid spacing in mm (the fine stage works in physical units; set it to the bundle's
             ``network_spacing``).
@@ -166,6 +173,7 @@ class DualEncoderRigidNet(nn.Module):
         align_gradient_weight: float = 0.0,
         align_robust_scale: float | None = None,
         align_support_erosion_mm: float = 8.0,
+        align_bias_degree: int = -1,
         grid_spacing: Sequence[float] = (4.0, 4.0, 4.0),
         support_threshold: float = 1e-3,
     ) -> None:
@@ -186,6 +194,7 @@ class DualEncoderRigidNet(nn.Module):
         self.align_levels = tuple(int(v) for v in align_levels)
         self.align_robust_scale = align_robust_scale
         self.align_support_erosion_mm = float(align_support_erosion_mm)
+        self.align_bias_degree = int(align_bias_degree)
         self.align_highpass_sigma_mm = float(align_highpass_sigma_mm)
         self.align_highpass_weight = float(align_highpass_weight)
         self.align_gradient_weight = float(align_gradient_weight)
@@ -325,7 +334,7 @@ class DualEncoderRigidNet(nn.Module):
                 first = False
                 continue
             total = gauss_newton_align(fm, ff, g, total, iterations=iters, moving_support=sup,
-                                       robust_scale=self.align_robust_scale)
+                                       robust_scale=self.align_robust_scale, bias_degree=self.align_bias_degree)
         if first:  # no level ran
             total = starts[:b]
         return matrix_to_params_torch(total, grid.center()).to(coarse.dtype)
