@@ -96,6 +96,7 @@ def gauss_newton_align(
     robust_scale: float | None = None,
     return_residual: bool = False,
     bias_degree: int = -1,
+    jacobian: str = "fixed",
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Refine a fixed->moving rigid matrix so that ``moving(T(x)) ~ fixed(x)`` in least squares.
 
@@ -118,13 +119,19 @@ def gauss_newton_align(
             component exceeds it is scaled down (an ill-conditioned system, e.g. a nearly empty overlap, would
             otherwise jump by metres).
         min_voxels: cases whose overlap has fewer weighted voxels than this keep their estimate (no step).
-        return_residual: also return the final weighted mean squared residual and the overlap per case.
+        return_residual: also return the final weighted mean squared residual (without bias terms) and the
+            overlap per case.
         robust_scale: if set, Geman-McClure weights ``s^2 / (s^2 + r^2)`` on the per-voxel squared residual
             (downweights CBCT truncation and artefacts).
         bias_degree: if >= 0, a smooth intensity bias per channel, a polynomial of this degree in the grid
             coordinates (:func:`polynomial_basis`), is estimated jointly with the pose at every step and discarded
             (linear appearance variation in the sense of Baker and Matthews): the CBCT's cupping and scatter
             shading no longer pull the pose. -1: none.
+        jacobian: where the image gradients come from: ``"fixed"`` (inverse compositional, computed once),
+            ``"moving"`` (the warped moving features at every step, forward compositional) or ``"symmetric"``
+            (their mean, as in efficient second-order minimisation). With images of equal appearance all three
+            converge to the same pose; where the CBCT's features differ from the CT's, their fixed points differ
+            (``benchmarks/bench_gauss_newton_variants.py``).
 
     Returns:
         ``[B, 4, 4]`` float64 refined matrices; with ``return_residual`` also two ``[B]`` tensors at the returned
@@ -135,23 +142,27 @@ def gauss_newton_align(
         raise ValueError(f"moving {tuple(moving.shape)} and fixed {tuple(fixed.shape)} must be equal [B,C,x,y,z]")
     # the Jacobian is treated as a constant in backpropagation (as the inverse-compositional scheme treats it in
     # the forward pass); gradients reach both feature maps through the residual. Measured: 1.5-2x faster steps.
-    jac = fixed_jacobian(fixed.detach(), grid)  # [B, 6, C, ...]
-    jf = jac.flatten(2)  # [B, 6, C*N] (products in the feature dtype, the 6x6 solve in float64)
+    if jacobian not in ("fixed", "moving", "symmetric"):
+        raise ValueError(f"jacobian must be 'fixed', 'moving' or 'symmetric', got {jacobian!r}")
+    jac_fixed = None if jacobian == "moving" else fixed_jacobian(fixed.detach(), grid).flatten(2)  # [B, 6, C*N]
+    jf = jac_fixed  # (products in the feature dtype, the 6x6 solve in float64)
     n_ch, n_vox = moving.shape[1], moving[0, 0].numel()
     basis = None if bias_degree < 0 else polynomial_basis(grid, bias_degree, moving.dtype, moving.device).flatten(1)
     center = grid.center()
     total = init.to(torch.float64)
     support = torch.ones_like(moving[:, :1]) if moving_support is None else moving_support.to(moving.dtype)
     # the support rides along as one more channel: one sampling grid and one grid_sample per step
-    n_feat = moving.shape[1]
     stacked = torch.cat([moving, support], 1)
     for _ in range(iterations):
         both = warp_volume(stacked, total, grid, grid)
-        warped, cover = both[:, :n_feat], both[:, n_feat:]
+        warped, cover = both[:, :n_ch], both[:, n_ch:]
         w = (cover > 0.999).to(moving.dtype)
         if weight is not None:
             w = w * weight
         r = warped - fixed  # [B, C, ...]
+        if jacobian != "fixed":  # the step is still composed as T o W_d^-1 (W_d^-1 = W_-d to first order)
+            jac_moving = fixed_jacobian(warped.detach(), grid).flatten(2)
+            jf = jac_moving if jac_fixed is None else 0.5 * (jac_fixed + jac_moving)
         if robust_scale is not None:
             sq = (r.detach() ** 2).sum(1, keepdim=True)
             w = w * (robust_scale**2 / (robust_scale**2 + sq))
@@ -171,7 +182,7 @@ def gauss_newton_align(
     if not return_residual:
         return total
     both = warp_volume(stacked, total, grid, grid)
-    warped, covered = both[:, :n_feat], (both[:, n_feat:] > 0.999).to(moving.dtype)
+    warped, covered = both[:, :n_ch], (both[:, n_ch:] > 0.999).to(moving.dtype)
     overlap = covered.flatten(1).mean(1)
     w = covered if weight is None else covered * weight
     res = (w * (warped - fixed) ** 2).sum(dim=(1, 2, 3, 4)) / (w.sum(dim=(1, 2, 3, 4)) * moving.shape[1] + 1e-6)

@@ -128,6 +128,9 @@ class DualEncoderRigidNet(nn.Module):
             field can stand in for a shift of broad structures (measured with ``benchmarks/bench_capture_range.py``:
             from the identity at +-30 mm/degrees, 45 % captured with bias terms on every level, 62 % without them
             on the first, 60 % with none).
+        align_jacobian: image gradients of the Gauss-Newton steps: ``"fixed"`` (inverse compositional, the
+            default), ``"moving"`` or ``"symmetric"``
+            (see :func:`~monai_rigidreg.networks.alignment.gauss_newton_align`).
         align_robust_scale: optional Geman-McClure scale of the fine stage's residuals (None: plain least squares).
         grid_spacing: network-grid spacing in mm (the fine stage works in physical units; set it to the bundle's
             ``network_spacing``).
@@ -174,6 +177,7 @@ class DualEncoderRigidNet(nn.Module):
         align_robust_scale: float | None = None,
         align_support_erosion_mm: float = 8.0,
         align_bias_degree: int = -1,
+        align_jacobian: str = "fixed",
         grid_spacing: Sequence[float] = (4.0, 4.0, 4.0),
         support_threshold: float = 1e-3,
     ) -> None:
@@ -195,6 +199,7 @@ class DualEncoderRigidNet(nn.Module):
         self.align_robust_scale = align_robust_scale
         self.align_support_erosion_mm = float(align_support_erosion_mm)
         self.align_bias_degree = int(align_bias_degree)
+        self.align_jacobian = str(align_jacobian)
         self.align_highpass_sigma_mm = float(align_highpass_sigma_mm)
         self.align_highpass_weight = float(align_highpass_weight)
         self.align_gradient_weight = float(align_gradient_weight)
@@ -325,7 +330,8 @@ class DualEncoderRigidNet(nn.Module):
             if first:
                 fm2, ff2, sup2 = fm.repeat(2, 1, 1, 1, 1), ff.repeat(2, 1, 1, 1, 1), sup.repeat(2, 1, 1, 1, 1)
                 both, res, cover = gauss_newton_align(fm2, ff2, g, total, iterations=iters, moving_support=sup2,
-                                                      robust_scale=self.align_robust_scale, return_residual=True)
+                                                      robust_scale=self.align_robust_scale, return_residual=True,
+                                                      jacobian=self.align_jacobian)
                 # a start that leaves little overlap can show a low mean residual: it must keep at least half the
                 # overlap of the identity start to be preferred
                 pick = ((res[:b] <= res[b:]) & (cover[:b] >= 0.5 * cover[b:])).view(b, 1, 1)
@@ -334,7 +340,8 @@ class DualEncoderRigidNet(nn.Module):
                 first = False
                 continue
             total = gauss_newton_align(fm, ff, g, total, iterations=iters, moving_support=sup,
-                                       robust_scale=self.align_robust_scale, bias_degree=self.align_bias_degree)
+                                       robust_scale=self.align_robust_scale, bias_degree=self.align_bias_degree,
+                                       jacobian=self.align_jacobian)
         if first:  # no level ran
             total = starts[:b]
         return matrix_to_params_torch(total, grid.center()).to(coarse.dtype)
