@@ -41,6 +41,10 @@ VARIANTS: dict[str, dict] = {
     "quadratic bias, fixed Jacobian (bundle 0.2.1)": {"align_bias_degree": 2, "align_jacobian": "fixed"},
     "quadratic bias, symmetric Jacobian": {"align_bias_degree": 2, "align_jacobian": "symmetric"},
     "quadratic bias, moving Jacobian": {"align_bias_degree": 2, "align_jacobian": "moving"},
+    "quadratic bias, symmetric Jacobian on the last level": {
+        "align_bias_degree": 2, "align_jacobian": ("fixed", "fixed", "symmetric")},
+    "quadratic bias, symmetric Jacobian on the last two levels": {
+        "align_bias_degree": 2, "align_jacobian": ("fixed", "symmetric", "symmetric")},
 }
 
 

@@ -130,7 +130,8 @@ class DualEncoderRigidNet(nn.Module):
             on the first, 60 % with none).
         align_jacobian: image gradients of the Gauss-Newton steps: ``"fixed"`` (inverse compositional, the
             default), ``"moving"`` or ``"symmetric"``
-            (see :func:`~monai_rigidreg.networks.alignment.gauss_newton_align`).
+            (see :func:`~monai_rigidreg.networks.alignment.gauss_newton_align`); one for all levels or one per
+            level (same length as ``align_iterations``).
         align_robust_scale: optional Geman-McClure scale of the fine stage's residuals (None: plain least squares).
         grid_spacing: network-grid spacing in mm (the fine stage works in physical units; set it to the bundle's
             ``network_spacing``).
@@ -177,7 +178,7 @@ class DualEncoderRigidNet(nn.Module):
         align_robust_scale: float | None = None,
         align_support_erosion_mm: float = 8.0,
         align_bias_degree: int = -1,
-        align_jacobian: str = "fixed",
+        align_jacobian: str | Sequence[str] = "fixed",
         grid_spacing: Sequence[float] = (4.0, 4.0, 4.0),
         support_threshold: float = 1e-3,
     ) -> None:
@@ -199,7 +200,9 @@ class DualEncoderRigidNet(nn.Module):
         self.align_robust_scale = align_robust_scale
         self.align_support_erosion_mm = float(align_support_erosion_mm)
         self.align_bias_degree = int(align_bias_degree)
-        self.align_jacobian = str(align_jacobian)
+        self.align_jacobian = align_jacobian if isinstance(align_jacobian, str) else tuple(align_jacobian)
+        if not isinstance(self.align_jacobian, str) and len(self.align_jacobian) != len(self.align_levels):
+            raise ValueError(f"align_jacobian {self.align_jacobian} needs one entry per level {self.align_levels}")
         self.align_highpass_sigma_mm = float(align_highpass_sigma_mm)
         self.align_highpass_weight = float(align_highpass_weight)
         self.align_gradient_weight = float(align_gradient_weight)
@@ -321,7 +324,9 @@ class DualEncoderRigidNet(nn.Module):
                             torch.eye(4, dtype=torch.float64, device=coarse.device).expand(b, 4, 4)], 0)
         total = starts
         first = True
-        for level, iters in zip(self.align_levels, self.align_iterations):
+        jacobians = [self.align_jacobian] * len(self.align_levels) if isinstance(self.align_jacobian, str) \
+            else list(self.align_jacobian)
+        for level, iters, jacobian in zip(self.align_levels, self.align_iterations, jacobians):
             if iters <= 0:
                 continue
             fm, g = pyramid(feat_m, grid, level)
@@ -331,7 +336,7 @@ class DualEncoderRigidNet(nn.Module):
                 fm2, ff2, sup2 = fm.repeat(2, 1, 1, 1, 1), ff.repeat(2, 1, 1, 1, 1), sup.repeat(2, 1, 1, 1, 1)
                 both, res, cover = gauss_newton_align(fm2, ff2, g, total, iterations=iters, moving_support=sup2,
                                                       robust_scale=self.align_robust_scale, return_residual=True,
-                                                      jacobian=self.align_jacobian)
+                                                      jacobian=jacobian)
                 # a start that leaves little overlap can show a low mean residual: it must keep at least half the
                 # overlap of the identity start to be preferred
                 pick = ((res[:b] <= res[b:]) & (cover[:b] >= 0.5 * cover[b:])).view(b, 1, 1)
@@ -341,7 +346,7 @@ class DualEncoderRigidNet(nn.Module):
                 continue
             total = gauss_newton_align(fm, ff, g, total, iterations=iters, moving_support=sup,
                                        robust_scale=self.align_robust_scale, bias_degree=self.align_bias_degree,
-                                       jacobian=self.align_jacobian)
+                                       jacobian=jacobian)
         if first:  # no level ran
             total = starts[:b]
         return matrix_to_params_torch(total, grid.center()).to(coarse.dtype)
