@@ -201,3 +201,22 @@ def test_untrained_network_with_alignment_stage_registers_and_trains():
     assert net.head.weight.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="differ in length"):
         DualEncoderRigidNet(align_iterations=(1, 2), align_levels=(4, 2, 1), **TINY)
+
+
+def test_network_jacobian_per_level_and_its_length_check():
+    """``align_jacobian`` per pyramid level: symmetric steps on the last level end where the default does on a clean
+    pair, near the known motion; a list of the wrong length is refused."""
+    grid = Grid.centered((32, 32, 32), (3.0, 3.0, 3.0), (0.0, 0.0, 0.0))
+    fixed = _blobs(grid.size, seed=1).float()
+    p = torch.tensor([[4.0, -3.0, 2.0, 3.0, -4.0, 5.0]])
+    moving = _moving_for(fixed.double(), p.double(), grid).float()
+    kw = dict(TINY, align_iterations=(10, 10), align_levels=(2, 1), grid_spacing=grid.spacing, support_threshold=-1.0)
+    ests = []
+    for jac in ("fixed", ("fixed", "symmetric")):
+        net = DualEncoderRigidNet(**kw, align_jacobian=jac).eval()
+        with torch.no_grad():
+            ests.append(net.forward_pair(moving, fixed)[0].numpy())
+        np.testing.assert_allclose(ests[-1], p[0].numpy(), atol=1.0)  # the fixed features' own precision here
+    np.testing.assert_allclose(ests[1], ests[0], atol=0.3)
+    with pytest.raises(ValueError, match="one entry per level"):
+        DualEncoderRigidNet(**kw, align_jacobian=("fixed", "fixed", "symmetric"))
