@@ -53,6 +53,8 @@ VARIANTS: dict[str, dict] = {
     "default, quadratic intensity bias terms": {"align_bias_degree": 2},
     "default, cubic intensity bias terms": {"align_bias_degree": 3},
     "12-8-4 + quadratic bias terms (the bundle's)": {"align_iterations": (12, 8, 4), "align_bias_degree": 2},
+    "0.2.1 + symmetric steps on the last level": {
+        "align_iterations": (12, 8, 4), "align_bias_degree": 2, "align_jacobian": ("fixed", "fixed", "symmetric")},
 }
 
 

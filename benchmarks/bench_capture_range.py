@@ -50,6 +50,9 @@ def main() -> None:
     ap.add_argument("--sizes", default="5,10,15,20,25,30", help="motion sizes (mm and degrees per axis)")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--align-jacobian", default=None,
+                    help="override the fine stage's Jacobian per level, e.g. fixed,fixed,symmetric (see "
+                         "bench_gauss_newton_variants.py)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     bundle = Path(args.bundle) if args.bundle else default_bundle_path()
@@ -58,6 +61,9 @@ def main() -> None:
     data = load_decathlon_datalist(args.datalist, is_segmentation=False, data_list_key="training")
     nets = {"trained": load_network(bundle, args.weights, False),
             "no regression": load_network(bundle, args.weights, True)}
+    if args.align_jacobian:
+        for net in nets.values():
+            net.align_jacobian = tuple(args.align_jacobian.split(","))
     print(f"{len(data)} cases x {args.repeats} motions per size; grid {size} at {spacing} mm; bundle {bundle}")
     print(f"{'size':>5s} | " + " | ".join(f"{n + ': ok, median':>26s}" for n in nets) + " | regression error (mm)")
     for m in [float(v) for v in args.sizes.split(",")]:
