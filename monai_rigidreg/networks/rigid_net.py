@@ -125,9 +125,8 @@ class DualEncoderRigidNet(nn.Module):
             that the fine stage estimates jointly with the pose and discards, so CBCT cupping and scatter shading do
             not pull the pose (-1: none); see :func:`~monai_rigidreg.networks.alignment.gauss_newton_align`. Used
             from the second pyramid level on: on the coarsest level, where large motions are captured, a smooth
-            field can stand in for a shift of broad structures (measured with ``benchmarks/bench_capture_range.py``:
-            from the identity at +-30 mm/degrees, 45 % captured with bias terms on every level, 62 % without them
-            on the first, 60 % with none).
+            field can stand in for a shift of broad structures (``benchmarks/bench_capture_range.py``, run once
+            with the terms on every level: fewer large motions captured from the identity than without them).
         align_jacobian: image gradients of the Gauss-Newton steps: ``"fixed"`` (inverse compositional, the
             default), ``"moving"`` or ``"symmetric"``
             (see :func:`~monai_rigidreg.networks.alignment.gauss_newton_align`); one for all levels or one per
