@@ -467,3 +467,24 @@ def test_cli(tmp_path, capsys):
     assert (out / "dataset.json").is_file() and str(out / "dataset.json") in capsys.readouterr().out
     args = parser.parse_args(["simulate", "--output-dir", str(out), "--seed", "3", "--device", "cpu", *sets])
     assert run(args) == 2 and "already exists" in capsys.readouterr().err
+
+
+def test_volume_dtype_is_a_storage_choice(tmp_path):
+    """Volumes are stored as int16 HU by default and as float32 on request (``--set volume_dtype=float32``); the
+    choice is not part of the dataset's configuration identity, and anything else is refused."""
+    from conftest import TINY_SIM
+
+    from monai_rigidreg.simulation import make_config, simulate_pair
+
+    settings = {k: v for k, v in TINY_SIM.items() if k != "preset"}
+    a = simulate_pair(tmp_path / "a", params=[3.0, 0, 0, 0, 0, 5.0], seed=1, device="cpu", **settings)
+    b = simulate_pair(tmp_path / "b", params=[3.0, 0, 0, 0, 0, 5.0], seed=1, device="cpu", volume_dtype="float32",
+                      **settings)
+    for key in ("fixed", "moving"):
+        ia, ib = sitk.ReadImage(str(a[key])), sitk.ReadImage(str(b[key]))
+        assert ia.GetPixelID() == sitk.sitkInt16 and ib.GetPixelID() == sitk.sitkFloat32
+        diff = sitk.GetArrayFromImage(ia).astype(np.float64) - sitk.GetArrayFromImage(ib)
+        assert np.abs(diff).max() <= 0.5 + 1e-3  # the same simulation, rounded to whole HU
+    assert make_config("fast", volume_dtype="float32").identity() == make_config("fast").identity()
+    with pytest.raises(InputError, match="volume_dtype"):
+        make_config("fast", volume_dtype="float16")

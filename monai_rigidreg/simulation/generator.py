@@ -55,7 +55,7 @@ __all__ = [
     "save_volume_hu",
 ]
 
-_RUNTIME_KEYS = ("device", "workers")
+_RUNTIME_KEYS = ("device", "workers", "volume_dtype")
 
 
 @dataclass
@@ -86,6 +86,8 @@ class SimulationConfig:
         max_translation, max_rotation: ranges of the ``random`` protocol (mm, degrees).
         device: ``"cpu"``, ``"cuda"`` or ``"auto"`` (does not change the configuration identity).
         workers: worker processes for the cases (0: in this process).
+        volume_dtype: how the volumes are stored: ``"int16"`` whole HU (default, as scanners store CT) or
+            ``"float32"`` (see :func:`save_volume_hu`; a storage choice, not part of the configuration identity).
     """
 
     phantom: str = "shepp-logan"
@@ -115,6 +117,7 @@ class SimulationConfig:
     max_rotation: float = 30.0
     device: str = "auto"
     workers: int = 0
+    volume_dtype: str = "int16"
 
     def __post_init__(self) -> None:
         self.simct_size = _triple(self.simct_size, int, "simct_size")
@@ -123,6 +126,8 @@ class SimulationConfig:
         self.cbct_spacing = _triple(self.cbct_spacing, float, "cbct_spacing")
         if min(self.simct_size + self.cbct_size) < 2 or min(self.simct_spacing + self.cbct_spacing) <= 0:
             raise InputError("grid sizes must be >= 2 voxels and spacings > 0 mm")
+        if self.volume_dtype not in ("int16", "float32"):
+            raise InputError(f"volume_dtype must be 'int16' or 'float32', got {self.volume_dtype!r}")
         if self.protocol not in PROTOCOLS:
             raise InputError(f"unknown protocol {self.protocol!r}; choose one of {PROTOCOLS}")
         for name in ("simct_filter", "cbct_filter"):
@@ -472,7 +477,8 @@ def _run_case(cfg_dict: dict[str, Any], case: dict[str, Any], out_dir: str) -> s
     )
     out = Path(out_dir)
     save_fov_mask(fov, cfg.cbct_grid, out / case["moving_fov"])
-    save_volume_hu(rec, cfg.cbct_grid, out / case["moving"])  # written last: its presence marks a finished case
+    # written last: its presence marks a finished case
+    save_volume_hu(rec, cfg.cbct_grid, out / case["moving"], cfg.volume_dtype)
     return case["case_id"]
 
 
@@ -613,7 +619,7 @@ def simulate_dataset(
         rec = simulate_simct(
             mu, grid, cfg.simct_views, cfg.sod, cfg.sdd, cfg.simct_filter, cfg.simct_photons, _seed(cfg.seed, 2, k), dev
         )
-        save_volume_hu(rec, grid, path)
+        save_volume_hu(rec, grid, path, cfg.volume_dtype)
     cfg_dict = dataclasses.asdict(cfg)
     bar = tqdm(total=len(todo), desc="CBCT cases", unit="case", disable=not progress)
     if cfg.workers > 0 and len(todo) > 1:

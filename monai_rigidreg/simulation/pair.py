@@ -64,7 +64,7 @@ def simulate_pair(
         _seed(cfg.seed, 2, 0),
         dev,
     )
-    fixed = save_volume_hu(simct, cfg.simct_grid, out / "simct.nii.gz")
+    fixed = save_volume_hu(simct, cfg.simct_grid, out / "simct.nii.gz", cfg.volume_dtype)
     obj_grid = cfg.object_grid()
     obj_mu, _ = make_phantom(cfg.phantom, obj_grid, obj_seed, cfg.supersample, cfg.radius_mm, dev)
     rec, fov, _ = simulate_cbct(
@@ -84,7 +84,7 @@ def simulate_pair(
         padding_mode="zeros" if cfg.phantom in PHANTOMS else "border",
         device=dev,
     )
-    moving = save_volume_hu(rec, cfg.cbct_grid, out / "cbct.nii.gz")
+    moving = save_volume_hu(rec, cfg.cbct_grid, out / "cbct.nii.gz", cfg.volume_dtype)
     save_fov_mask(fov, cfg.cbct_grid, out / "cbct_fov.nii.gz")
     center = cfg.simct_grid.center()
     return {
