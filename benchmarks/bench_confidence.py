@@ -29,10 +29,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import SimpleITK as sitk  # noqa: E402
 import torch  # noqa: E402
 
-from monai_rigidreg.evaluation.evaluate import body_points, load_datalist, true_params  # noqa: E402
+from monai_rigidreg.evaluation.evaluate import iter_cases, load_datalist  # noqa: E402
 from monai_rigidreg.evaluation.report import SUCCESS_TRE_MM  # noqa: E402
-from monai_rigidreg.geometry import Grid, recenter_params, target_registration_error  # noqa: E402
-from monai_rigidreg.io import load_volume  # noqa: E402
+from monai_rigidreg.geometry import recenter_params, target_registration_error  # noqa: E402
 from monai_rigidreg.register import CONFIDENCE_THRESHOLD, RigidRegistrar, cylindrical_fov_mask  # noqa: E402
 
 
@@ -66,16 +65,9 @@ def main() -> None:
     rows: list[tuple[str, bool, bool, float]] = []  # (kind, failed, flagged, confidence)
     for dl in args.datalist:
         items, _ = load_datalist(dl)
-        fixed_path, fixed, pts = None, None, None
-        for it in items:
-            if it["fixed"] != fixed_path:
-                fixed_path, fixed = it["fixed"], load_volume(it["fixed"])
-                pts = body_points(fixed)
-            moving = load_volume(it["moving"])
-            fov_img = load_volume(it["moving_fov"], pixel_type=sitk.sitkUInt8) if "moving_fov" in it else None
-            fov_img = cylindrical_fov_mask(moving) if fov_img is None else fov_img
-            center = Grid.from_sitk(fixed).center()
-            truth = true_params(it, center)
+        for case in iter_cases(items):
+            fixed, moving, center = case.fixed, case.moving, case.center
+            fov_img = cylindrical_fov_mask(moving) if case.fov is None else case.fov
             grid = reg.network_grid(fixed, moving)
             f_t, m_t = reg.preprocess(fixed, grid), reg.preprocess(moving, grid)
             fov_t = reg._on_grid(fov_img, grid, "nearest", 0.0)[0]
@@ -83,8 +75,8 @@ def main() -> None:
             for kind, offset in [("network estimate", np.zeros(6)), *_offsets(args.translations, args.rotations, rng)]:
                 p = est + offset
                 conf = reg.assess(m_t, f_t, grid, p, fov_t)["confidence"]
-                tre = float(target_registration_error(recenter_params(p, grid.center(), center), truth, pts,
-                                                      center=center))
+                tre = float(target_registration_error(recenter_params(p, grid.center(), center), case.truth,
+                                                      case.points, center=center))
                 rows.append((kind, tre >= SUCCESS_TRE_MM, conf < CONFIDENCE_THRESHOLD, conf))
         print(f"{dl}: {len(items)} cases", flush=True)
 

@@ -30,9 +30,8 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import SimpleITK as sitk  # noqa: E402
 import torch  # noqa: E402
 
-from monai_rigidreg.evaluation.evaluate import body_points, load_datalist, true_params  # noqa: E402
-from monai_rigidreg.geometry import Grid, recenter_params, target_registration_error  # noqa: E402
-from monai_rigidreg.io import load_volume  # noqa: E402
+from monai_rigidreg.evaluation.evaluate import iter_cases, load_datalist  # noqa: E402
+from monai_rigidreg.geometry import recenter_params, target_registration_error  # noqa: E402
 from monai_rigidreg.register import RigidRegistrar  # noqa: E402
 
 # name -> fine-stage attributes of DualEncoderRigidNet
@@ -63,16 +62,10 @@ def main() -> None:
     for dl in args.datalist:
         items, _ = load_datalist(dl)
         cases = []  # preprocessed once, registered by every variant
-        fixed_path, fixed, pts = None, None, None
-        for it in items:
-            if it["fixed"] != fixed_path:
-                fixed_path, fixed = it["fixed"], load_volume(it["fixed"])
-                pts = body_points(fixed)
-            moving = load_volume(it["moving"])
-            center = Grid.from_sitk(fixed).center()
-            grid = reg.network_grid(fixed, moving)
-            cases.append((str(it.get("case_id", Path(it["moving"]).name)), reg.preprocess(moving, grid),
-                          reg.preprocess(fixed, grid), grid, center, true_params(it, center), pts))
+        for case in iter_cases(items):
+            grid = reg.network_grid(case.fixed, case.moving)
+            cases.append((case.case_id, reg.preprocess(case.moving, grid), reg.preprocess(case.fixed, grid), grid,
+                          case.center, case.truth, case.points))
         for name, attrs in VARIANTS.items():
             for key, value in attrs.items():
                 setattr(net, key, value)

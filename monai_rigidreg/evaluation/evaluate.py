@@ -10,7 +10,8 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +30,7 @@ from monai_rigidreg.geometry import (
 )
 from monai_rigidreg.io import load_volume
 
-__all__ = ["METHODS", "evaluate_datalist", "load_datalist", "body_points"]
+__all__ = ["METHODS", "evaluate_datalist", "load_datalist", "body_points", "LoadedCase", "iter_cases"]
 
 logger = logging.getLogger(__name__)
 
@@ -86,6 +87,42 @@ def body_points(fixed: sitk.Image, threshold_hu: float = -400.0, max_points: int
         return grid_points(Grid.from_sitk(fixed), 8)
 
 
+@dataclass
+class LoadedCase:
+    """One datalist item read from disk, with its ground truth about the fixed image centre.
+
+    Attributes:
+        item: the datalist entry; case_id: its ``case_id`` (else the moving file's name).
+        fixed, moving: the volumes (float32); fov: the CBCT field-of-view mask (uint8) if the item names one.
+        center: fixed image centre (LPS mm); truth: ``(tx, ty, tz, rx, ry, rz)`` about it; points: the fixed
+            image's body points (mm) over which TRE is measured.
+    """
+
+    item: dict[str, Any]
+    case_id: str
+    fixed: sitk.Image
+    moving: sitk.Image
+    fov: sitk.Image | None
+    center: np.ndarray
+    truth: np.ndarray
+    points: np.ndarray
+
+
+def iter_cases(items: Iterable[dict[str, Any]]) -> Iterator[LoadedCase]:
+    """Read the items of :func:`load_datalist` one by one; a fixed image (and its body points) shared by
+    consecutive items is read once (datalists group cases by object)."""
+    fixed_path, fixed, points = None, None, None
+    for item in items:
+        if item["fixed"] != fixed_path:
+            fixed_path, fixed = item["fixed"], load_volume(item["fixed"])
+            points = body_points(fixed)
+        moving = load_volume(item["moving"])
+        fov = load_volume(item["moving_fov"], pixel_type=sitk.sitkUInt8) if "moving_fov" in item else None
+        center = Grid.from_sitk(fixed).center()
+        yield LoadedCase(item, str(item.get("case_id", Path(item["moving"]).name)), fixed, moving, fov, center,
+                         true_params(item, center), points)
+
+
 def evaluate_datalist(
     datalist: str | Path,
     methods: Sequence[str] = ("network",),
@@ -131,24 +168,13 @@ def evaluate_datalist(
 
     from tqdm.auto import tqdm
 
-    cache: dict[str, tuple[sitk.Image, np.ndarray]] = {}
     cases: list[CaseResult] = []
-    for item in tqdm(items, desc="evaluate", disable=not progress, unit="case"):
-        if item["fixed"] not in cache:
-            cache.clear()  # keep one fixed image and its body points (datalists group cases by object)
-            fixed_img = load_volume(item["fixed"])
-            cache[item["fixed"]] = (fixed_img, body_points(fixed_img))
-        fixed, pts = cache[item["fixed"]]
-        moving = load_volume(item["moving"])
-        fov = load_volume(item["moving_fov"], pixel_type=sitk.sitkUInt8) if "moving_fov" in item else None
-        center = Grid.from_sitk(fixed).center()
-        truth = true_params(item, center)
-        case_id = str(item.get("case_id", Path(item["moving"]).name))
+    for case in tqdm(iter_cases(items), total=len(items), desc="evaluate", disable=not progress, unit="case"):
         for method in methods:
-            pred, runtime, extra = _run_method(method, fixed, moving, fov, center, registrar)
-            tre = float(target_registration_error(pred, truth, pts, center=center))
-            cases.append(CaseResult(case_id, method, truth.tolist(), np.asarray(pred).tolist(), tre, runtime,
-                                    str(item.get("group", "")), extra))
+            pred, runtime, extra = _run_method(method, case.fixed, case.moving, case.fov, case.center, registrar)
+            tre = float(target_registration_error(pred, case.truth, case.points, center=case.center))
+            cases.append(CaseResult(case.case_id, method, case.truth.tolist(), np.asarray(pred).tolist(), tre,
+                                    runtime, str(case.item.get("group", "")), extra))
     summary = summarize(cases)
     report = format_report(summary)
     paths = write_report(cases, output_dir) if output_dir is not None else {}
