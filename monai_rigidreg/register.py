@@ -361,7 +361,8 @@ class RigidRegistrar:
         timings["network"] = time.perf_counter() - t
         center = grid.center()
         params = net_params.copy()
-        details: dict[str, Any] = {"network_params": {n: float(v) for n, v in zip(PARAM_NAMES, net_params)},
+        # network_params and the refinement's change are filled in at the end, about the fixed image centre
+        details: dict[str, Any] = {"network_params": {},
                                    "cascade_steps": self.cascade_steps if cascade_steps is None else cascade_steps,
                                    "device": str(self.device)}
 
@@ -371,24 +372,24 @@ class RigidRegistrar:
         if refine:
             from monai_rigidreg.classical import register_sitk
 
+            def refine_from(start_params: np.ndarray) -> Any:
+                return register_sitk(fixed_img, moving_img, initial_params=start_params, center=center,
+                                     moving_mask=fov_img, shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0))
+
             t = time.perf_counter()
-            res = register_sitk(fixed_img, moving_img, initial_params=net_params, center=center, moving_mask=fov_img,
-                                shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0))
-            start = "network"
+            res, start = refine_from(net_params), "network"
             # safeguard: a network estimate that looks wrong can drag the optimizer into a wrong basin; then the
             # optimizer also starts from the identity and the lower (better) Mattes MI value wins
             pre = self.assess(moving_t, fixed_t, grid, net_params, fov_t, swap=False)
             if pre["local_gain"] > LOCAL_GAIN_LIMIT:
-                alt = register_sitk(fixed_img, moving_img, initial_params=np.zeros(6), center=center,
-                                    moving_mask=fov_img, shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0))
+                alt = refine_from(np.zeros(6))
                 if alt.metric < res.metric:
                     res, start = alt, "identity"
             params = res.params
             timings["refine"] = time.perf_counter() - t
-            change = params - net_params
             details["refine"] = {
                 "start": start,
-                "change": {n: float(v) for n, v in zip(PARAM_NAMES, change)},
+                "change": {},
                 "change_tre_mm": float(target_registration_error(params, net_params, grid_points(grid, 4),
                                                                  center=center)),
                 "metric": res.metric,
