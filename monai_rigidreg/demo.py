@@ -51,9 +51,10 @@ def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=D
              sim_overrides: dict | None = None) -> dict:
     """Run the demo; returns ``{"true", "pred", "abs_error", "tre_mm", "confidence", "paths", "timings"}``.
 
-    ``sim_overrides`` update :data:`DEMO_SIMULATION` (any :class:`~monai_rigidreg.simulation.SimulationConfig`
-    field, e.g. ``{"preset": "paper"}`` is not one: pass grid sizes and spacings). An existing, non-empty
-    ``output_dir`` is refused unless ``overwrite``.
+    ``sim_overrides`` update :data:`DEMO_SIMULATION` and go to
+    :func:`~monai_rigidreg.simulation.simulate_pair` (any :class:`~monai_rigidreg.simulation.SimulationConfig`
+    field; the demo's grid sizes and spacings win over a ``preset`` unless they are overridden too). An existing,
+    non-empty ``output_dir`` is refused unless ``overwrite``.
     """
     from monai_rigidreg.geometry import PARAM_NAMES, parameter_errors, target_registration_error
     from monai_rigidreg.io import load_volume
