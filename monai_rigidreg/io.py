@@ -31,6 +31,7 @@ __all__ = [
     "sitk_to_metatensor",
     "metatensor_to_sitk",
     "check_output_path",
+    "check_output_dir",
     "grids_overlap",
     "as_image",
 ]
@@ -61,6 +62,31 @@ def check_output_path(path: str | Path, overwrite: bool = False) -> Path:
     if p.exists() and not overwrite:
         raise OutputExistsError(p)
     p.parent.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+def check_output_dir(path: str | Path, overwrite: bool = False, allow_existing: bool = False) -> Path:
+    """Return ``path`` as a ``Path`` after checking that a command may write its output folder there.
+
+    The one check of every command that writes a folder (register, simulate, evaluate, demo, train): a path that
+    is a file, or whose parent is a file, is refused whatever ``overwrite`` says (it would take a file away, or
+    cannot be made); an existing non-empty folder is refused unless ``overwrite`` or ``allow_existing`` (a caller
+    that resumes or adds to a folder checks its content itself). Nothing is created or removed here.
+
+    Raises:
+        OutputExistsError: ``path`` is a file, or a non-empty folder and neither flag is set.
+        InputError: a parent of ``path`` is a file, or the name is too long for the file system.
+    """
+    p = Path(path)
+    for parent in p.parents:
+        if parent.exists() and not parent.is_dir():
+            raise InputError("cannot create the output folder: this parent of it is a file", parent)
+    if any(len(part.encode()) > 255 for part in p.parts):
+        raise InputError("an output folder name is longer than 255 bytes", p)
+    if p.exists() and not p.is_dir():
+        raise OutputExistsError(p, "it is a file, not a folder; choose another --output-dir")
+    if p.is_dir() and any(p.iterdir()) and not (overwrite or allow_existing):
+        raise OutputExistsError(p)
     return p
 
 

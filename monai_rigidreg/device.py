@@ -1,0 +1,35 @@
+"""The one place that turns a user's device choice (``"auto"``, ``"cpu"``, ``"cuda:1"``, ...) into a ``torch.device``.
+
+Every part of the package (registration, simulation, training glue) calls :func:`resolve_device`, so a bad device
+string is reported the same way everywhere: as :class:`~monai_rigidreg.errors.InputError` naming the value.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from monai_rigidreg.errors import InputError
+
+__all__ = ["resolve_device"]
+
+
+def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
+    """``"auto"`` (or ``None``) -> CUDA when available, else CPU; anything else is parsed by ``torch.device``.
+
+    Raises:
+        InputError: the string is not a device torch knows (e.g. ``"gpu7"``), or CUDA (or the given CUDA index) was
+            asked for on a machine that does not have it.
+    """
+    if device is None or str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError, ValueError) as exc:
+        raise InputError(f"device {str(device)!r} is not a device name (use auto, cpu, cuda or cuda:N)") from exc
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise InputError(f"device {str(device)!r} was asked for but CUDA is not available")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise InputError(f"device {str(device)!r} was asked for but only {torch.cuda.device_count()} CUDA "
+                             "device(s) exist")
+    return dev
