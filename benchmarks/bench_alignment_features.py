@@ -33,28 +33,28 @@ from monai.data import load_decathlon_datalist  # noqa: E402
 from monai_rigidreg.engine.data import registration_transforms  # noqa: E402
 from monai_rigidreg.engine.metrics import RigidErrorMetric  # noqa: E402
 from monai_rigidreg.geometry import PARAM_NAMES  # noqa: E402
-from monai_rigidreg.networks import DualEncoderRigidNet  # noqa: E402
+from monai_rigidreg.networks import DualEncoderRigidNet, GaussNewtonStage, TwoStageRigidNet  # noqa: E402
 
 SPACING = 2.0
 SIZE = 64
-# name -> DualEncoderRigidNet keyword arguments of the fine stage
+# name -> GaussNewtonStage keyword arguments (the fine stage; the untrained regression starts at the identity)
 VARIANTS: dict[str, dict] = {
-    "intensity only": {"align_highpass_weight": 0.0, "align_gradient_weight": 0.0},
-    "intensity + gradient x2": {"align_highpass_weight": 0.0, "align_gradient_weight": 2.0},
+    "intensity only": {"highpass_weight": 0.0, "gradient_weight": 0.0},
+    "intensity + gradient x2": {"highpass_weight": 0.0, "gradient_weight": 2.0},
     "default: intensity + local contrast x3": {},  # support eroded 8 mm
-    "default + gradient x2": {"align_gradient_weight": 2.0},
-    "default, local contrast x1": {"align_highpass_weight": 1.0},
-    "default, local contrast sigma 8 mm": {"align_highpass_sigma_mm": 8.0},
-    "default, support erosion 1 voxel": {"align_support_erosion_mm": 0.0},
-    "default, support erosion 4 mm": {"align_support_erosion_mm": 4.0},
-    "default, support erosion 16 mm": {"align_support_erosion_mm": 16.0},
-    "default, 12-8-4 iterations": {"align_iterations": (12, 8, 4)},
-    "default, linear intensity bias terms": {"align_bias_degree": 1},
-    "default, quadratic intensity bias terms": {"align_bias_degree": 2},
-    "default, cubic intensity bias terms": {"align_bias_degree": 3},
-    "12-8-4 + quadratic bias terms (the bundle's)": {"align_iterations": (12, 8, 4), "align_bias_degree": 2},
+    "default + gradient x2": {"gradient_weight": 2.0},
+    "default, local contrast x1": {"highpass_weight": 1.0},
+    "default, local contrast sigma 8 mm": {"highpass_sigma_mm": 8.0},
+    "default, support erosion 1 voxel": {"support_erosion_mm": 0.0},
+    "default, support erosion 4 mm": {"support_erosion_mm": 4.0},
+    "default, support erosion 16 mm": {"support_erosion_mm": 16.0},
+    "default, 12-8-4 iterations": {"iterations": (12, 8, 4)},
+    "default, linear intensity bias terms": {"bias_degree": 1},
+    "default, quadratic intensity bias terms": {"bias_degree": 2},
+    "default, cubic intensity bias terms": {"bias_degree": 3},
+    "12-8-4 + quadratic bias terms (the bundle's)": {"iterations": (12, 8, 4), "bias_degree": 2},
     "0.2.1 + symmetric steps on the last level": {
-        "align_iterations": (12, 8, 4), "align_bias_degree": 2, "align_jacobian": ("fixed", "fixed", "symmetric")},
+        "iterations": (12, 8, 4), "bias_degree": 2, "jacobian": ("fixed", "fixed", "symmetric")},
 }
 
 
@@ -69,8 +69,8 @@ def load_set(datalist: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
 
 
 def run_variant(moving, fixed, params, **kwargs) -> dict[str, float]:
-    settings = {"align_iterations": (8, 5, 3), "grid_spacing": (SPACING,) * 3, **kwargs}
-    net = DualEncoderRigidNet(**settings).eval()
+    settings = {"iterations": (8, 5, 3), **kwargs}
+    net = TwoStageRigidNet(DualEncoderRigidNet(), GaussNewtonStage((SPACING,) * 3, **settings)).eval()
     preds, t0 = [], time.perf_counter()
     with torch.no_grad():
         for i in range(len(moving)):

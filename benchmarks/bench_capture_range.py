@@ -37,8 +37,8 @@ def load_network(bundle: Path, weights: str | None, zero_head: bool) -> torch.nn
     net, _ = load_bundle_network(bundle, weights=weights)
     if zero_head:
         with torch.no_grad():
-            net.head.weight.zero_()
-            net.head.bias.zero_()
+            net.regression.head.weight.zero_()
+            net.regression.head.bias.zero_()
     return net
 
 
@@ -63,7 +63,7 @@ def main() -> None:
             "no regression": load_network(bundle, args.weights, True)}
     if args.align_jacobian:
         for net in nets.values():
-            net.align_jacobian = tuple(args.align_jacobian.split(","))
+            net.fine_stage.jacobian = tuple(args.align_jacobian.split(","))
     print(f"{len(data)} cases x {args.repeats} motions per size; grid {size} at {spacing} mm; bundle {bundle}")
     print(f"{'size':>5s} | " + " | ".join(f"{n + ': ok, median':>26s}" for n in nets) + " | regression error (mm)")
     for m in [float(v) for v in args.sizes.split(",")]:
@@ -83,8 +83,9 @@ def main() -> None:
             preds, coarse = [], []
             with torch.no_grad():
                 for i in range(len(mov)):
-                    preds.append(net.forward_pair(mov[i:i + 1], fix[i:i + 1]))
-                    coarse.append(net.last_coarse)
+                    stages = net.forward_stages(mov[i:i + 1], fix[i:i + 1])
+                    preds.append(stages["params"])
+                    coarse.append(stages["coarse"])
             tre = RigidErrorMetric("tre")(torch.cat(preds), gt).flatten()
             cells.append(f"{100 * float((tre < 2).float().mean()):18.0f}% {float(tre.median()):6.2f}")
             if name == "trained":

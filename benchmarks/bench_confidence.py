@@ -29,10 +29,11 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 import SimpleITK as sitk  # noqa: E402
 import torch  # noqa: E402
 
+from monai_rigidreg.confidence import CONFIDENCE_THRESHOLD, cylindrical_fov_mask  # noqa: E402
 from monai_rigidreg.evaluation.evaluate import iter_cases, load_datalist  # noqa: E402
 from monai_rigidreg.evaluation.report import SUCCESS_TRE_MM  # noqa: E402
 from monai_rigidreg.geometry import recenter_params, target_registration_error  # noqa: E402
-from monai_rigidreg.register import CONFIDENCE_THRESHOLD, RigidRegistrar, cylindrical_fov_mask  # noqa: E402
+from monai_rigidreg.registration import RigidRegistrar  # noqa: E402
 
 
 def _offsets(translations: list[float], rotations: list[float], rng: np.random.Generator

@@ -1,7 +1,7 @@
 """Gauss-Newton fine-stage variants with the shipped weights, on held-out sets (which Jacobian, which bias terms).
 
 The shipped network (regression + fine stage) registers every case of the given datalists once per variant; only
-fine-stage settings change (``DualEncoderRigidNet.align_jacobian``, ``align_bias_degree``), the weights do not.
+fine-stage settings change (``GaussNewtonStage.jacobian``, ``bias_degree``), the weights do not.
 Printed per datalist and variant: mean and median TRE over the fixed image's body points (the report's TRE),
 cases under 2 mm, and the worst case.
 
@@ -32,18 +32,18 @@ import torch  # noqa: E402
 
 from monai_rigidreg.evaluation.evaluate import iter_cases, load_datalist  # noqa: E402
 from monai_rigidreg.geometry import recenter_params, target_registration_error  # noqa: E402
-from monai_rigidreg.register import RigidRegistrar  # noqa: E402
+from monai_rigidreg.registration import RigidRegistrar  # noqa: E402
 
-# name -> fine-stage attributes of DualEncoderRigidNet
+# name -> attributes of the fine stage (GaussNewtonStage)
 VARIANTS: dict[str, dict] = {
-    "no bias terms, fixed Jacobian (bundle 0.2.0)": {"align_bias_degree": -1, "align_jacobian": "fixed"},
-    "quadratic bias, fixed Jacobian (bundle 0.2.1)": {"align_bias_degree": 2, "align_jacobian": "fixed"},
-    "quadratic bias, symmetric Jacobian": {"align_bias_degree": 2, "align_jacobian": "symmetric"},
-    "quadratic bias, moving Jacobian": {"align_bias_degree": 2, "align_jacobian": "moving"},
+    "no bias terms, fixed Jacobian (bundle 0.2.0)": {"bias_degree": -1, "jacobian": "fixed"},
+    "quadratic bias, fixed Jacobian (bundle 0.2.1)": {"bias_degree": 2, "jacobian": "fixed"},
+    "quadratic bias, symmetric Jacobian": {"bias_degree": 2, "jacobian": "symmetric"},
+    "quadratic bias, moving Jacobian": {"bias_degree": 2, "jacobian": "moving"},
     "quadratic bias, symmetric Jacobian on the last level": {
-        "align_bias_degree": 2, "align_jacobian": ("fixed", "fixed", "symmetric")},
+        "bias_degree": 2, "jacobian": ("fixed", "fixed", "symmetric")},
     "quadratic bias, symmetric Jacobian on the last two levels": {
-        "align_bias_degree": 2, "align_jacobian": ("fixed", "symmetric", "symmetric")},
+        "bias_degree": 2, "jacobian": ("fixed", "symmetric", "symmetric")},
 }
 
 
@@ -56,7 +56,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(args.threads)
     reg = RigidRegistrar.from_bundle(args.bundle, device="cpu")
-    net = reg.network
+    net = reg.network.fine_stage
     print("| datalist | variant | n | mean TRE (mm) | median TRE (mm) | < 2 mm | worst case (TRE mm) |")
     print("|---|---|---|---|---|---|---|")
     for dl in args.datalist:

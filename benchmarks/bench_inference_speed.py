@@ -1,7 +1,7 @@
 """Where the time of one registration goes: reading, preprocessing, network, confidence (CPU, shipped weights).
 
 Runs on cases of a datalist (default: the Shepp-Logan set that ``bench_registration.py`` simulates) and prints the
-median seconds per case of every stage of :class:`monai_rigidreg.register.RigidRegistrar`, each next to the
+median seconds per case of every stage of :class:`monai_rigidreg.registration.RigidRegistrar`, each next to the
 slower way it replaced, so the figures quoted in the code and the README can be rerun:
 
 * reading the CT as stored (the simulator writes int16 HU) and a float32 ``.nii.gz`` copy, with the NaN check
@@ -37,12 +37,14 @@ import torch  # noqa: E402
 from monai.data import MetaTensor  # noqa: E402
 from monai.transforms import GaussianSmooth  # noqa: E402
 
+from monai_rigidreg.confidence import cylindrical_fov_mask  # noqa: E402
 from monai_rigidreg.evaluation.evaluate import load_datalist  # noqa: E402
 from monai_rigidreg.geometry import Grid  # noqa: E402
+from monai_rigidreg.image_ops import gaussian_smooth  # noqa: E402
 from monai_rigidreg.io import _check_nifti_finite, load_volume, sitk_to_metatensor  # noqa: E402
-from monai_rigidreg.register import RigidRegistrar, cylindrical_fov_mask  # noqa: E402
+from monai_rigidreg.registration import RigidRegistrar  # noqa: E402
 from monai_rigidreg.transforms import NormalizeHU, ResampleToNetworkGrid  # noqa: E402
-from monai_rigidreg.transforms.grid import antialias_sigmas, crop_to_grid, gaussian_smooth  # noqa: E402
+from monai_rigidreg.transforms.grid import antialias_sigmas, crop_to_grid  # noqa: E402
 
 
 def _median_time(fn: Callable[[], object], repeats: int) -> float:

@@ -11,7 +11,7 @@ one pair. Each grid size runs in a fresh subprocess so that the peak resident me
 "extra" is the peak minus the resident memory before the first forward.
 
 Ablation: 32^3 network grid at 4 mm (128 mm field of view); analytic phantoms (soft body + random Gaussian blobs,
-:mod:`monai_rigidreg.networks.toy`) with uniform random translations +-10 mm and rotations +-10 degrees; every
+:mod:`monai_rigidreg.simulation.toy`) with uniform random translations +-10 mm and rotations +-10 degrees; every
 variant trains for the same steps, batch, seed and learning-rate schedule on the supervised point-distance loss
 (``RigidRegistrationLoss(w_sup=1)``, other terms off) and is evaluated on the same held-out pairs.
 """
@@ -31,10 +31,10 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from monai_rigidreg.geometry import Grid, grid_points, params_to_matrix_torch  # noqa: E402
+from monai_rigidreg.geometry import Grid, grid_points, point_distances_torch  # noqa: E402
 from monai_rigidreg.losses import RigidRegistrationLoss  # noqa: E402
 from monai_rigidreg.networks import FUSIONS, DualEncoderRigidNet, RigidTransformer  # noqa: E402
-from monai_rigidreg.networks.toy import phantom_pair_batch, random_params  # noqa: E402
+from monai_rigidreg.simulation.toy import phantom_pair_batch, random_params  # noqa: E402
 
 
 def _rss_mb() -> float:
@@ -108,9 +108,7 @@ def speed_table(sizes: list[int], threads: int, repeats: int, fusion: str) -> No
 def _errors(pred: torch.Tensor, true: torch.Tensor, pts: torch.Tensor, center) -> tuple[float, float, float]:
     t_err = (pred[:, :3] - true[:, :3]).abs().mean().item()
     r_err = (pred[:, 3:] - true[:, 3:]).abs().mean().item()
-    diff = params_to_matrix_torch(pred.double(), center) - params_to_matrix_torch(true.double(), center)
-    d = pts @ diff[:, :3, :3].transpose(1, 2) + diff[:, None, :3, 3]
-    return t_err, r_err, d.norm(dim=-1).mean().item()
+    return t_err, r_err, point_distances_torch(pred.double(), true.double(), pts, center).mean().item()
 
 
 def ablation(steps: int, batch: int, n_val: int, lr: float, seed: int, threads: int, size: int) -> None:

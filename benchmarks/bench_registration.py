@@ -79,7 +79,7 @@ def main() -> None:
     from monai_rigidreg.data import find_data_file
     from monai_rigidreg.evaluation import evaluate_datalist
     from monai_rigidreg.evaluation.report import format_report, summarize
-    from monai_rigidreg.register import RigidRegistrar
+    from monai_rigidreg.registration import RigidRegistrar
 
     methods = [m for m in args.methods if m != "elastix" or elastix_available()]
     thorax = None if args.no_thorax else find_data_file("thorax_4dct_phase00_itkelastix.nii.gz")

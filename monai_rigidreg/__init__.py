@@ -1,6 +1,18 @@
-"""monai-rigidreg: rigid 6-DoF CBCT-to-CT registration for adaptive radiotherapy, as a MONAI plugin."""
+"""monai-rigidreg: rigid 6-DoF CBCT-to-CT registration for adaptive radiotherapy, as a MONAI plugin.
+
+``monai_rigidreg.register(fixed, moving, ...)`` is the registration function
+(:func:`monai_rigidreg.registration.register`); build the network once with
+``monai_rigidreg.RigidRegistrar.from_bundle()`` and pass it as ``model=``. The geometry conventions
+(:mod:`monai_rigidreg.geometry`, ``docs/conventions.md``) are imported eagerly; the registration API is imported on
+first use (PEP 562), because it pulls in MONAI and the networks: ``python -X importtime -c "import
+monai_rigidreg.registration"`` spends most of its time in ``monai``, and the command line's ``--help`` and
+``--version`` should not wait for that.
+"""
 
 from __future__ import annotations
+
+import importlib
+from typing import Any
 
 __version__ = "0.1.0"
 
@@ -14,6 +26,15 @@ from monai_rigidreg.geometry import (  # noqa: E402
     target_registration_error,
 )
 
+_LAZY = {
+    "register": "monai_rigidreg.registration",
+    "RigidRegistrar": "monai_rigidreg.registration",
+    "RegistrationResult": "monai_rigidreg.registration",
+    "register_files": "monai_rigidreg.outputs",
+    "write_outputs": "monai_rigidreg.outputs",
+    "NetworkGridSpec": "monai_rigidreg.network_grid",
+}
+
 __all__ = [
     "__version__",
     "PARAM_NAMES",
@@ -23,4 +44,17 @@ __all__ = [
     "params_to_sitk",
     "sitk_to_params",
     "target_registration_error",
+    *_LAZY,
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value  # later look-ups skip this hook
+        return value
+    raise AttributeError(f"module 'monai_rigidreg' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

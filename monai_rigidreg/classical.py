@@ -139,7 +139,7 @@ def register_sitk(
 
 def elastix_available() -> bool:
     """Whether ``itk-elastix`` (the optional ``elastix`` extra) is importable."""
-    try:
+    try:  # itk-elastix is an optional extra: imported where it is used, so the package works without it
         import itk  # noqa: F401
 
         return hasattr(itk, "ElastixRegistrationMethod")

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monai_rigidreg.errors import OutputExistsError
+from monai_rigidreg.geometry import PARAM_NAMES, parameter_errors, target_registration_error
 
 __all__ = ["add_parser", "run", "run_demo", "DEMO_MOTION", "DEMO_SIMULATION"]
 
@@ -56,14 +56,14 @@ def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=D
     field; the demo's grid sizes and spacings win over a ``preset`` unless they are overridden too). An existing,
     non-empty ``output_dir`` is refused unless ``overwrite``.
     """
-    from monai_rigidreg.geometry import PARAM_NAMES, parameter_errors, target_registration_error
-    from monai_rigidreg.io import load_volume
-    from monai_rigidreg.register import RigidRegistrar, write_outputs
+    # imported here: this module also defines the `demo` sub-command's parser, built for every `monai-rigidreg`
+    # call, and the registration stack pulls in MONAI (seconds; see register_cli.run)
+    from monai_rigidreg.io import check_output_dir, load_volume
+    from monai_rigidreg.outputs import write_outputs
+    from monai_rigidreg.registration import RigidRegistrar
     from monai_rigidreg.simulation.pair import simulate_pair
 
-    out = Path(output_dir)
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise OutputExistsError(out)
+    out = check_output_dir(output_dir, overwrite)
     t0 = time.perf_counter()
     settings = {**DEMO_SIMULATION, **(sim_overrides or {})}
     sim = simulate_pair(out / "data", phantom=phantom, params=list(motion), seed=seed, device=device, **settings)

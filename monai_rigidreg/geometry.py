@@ -2,7 +2,7 @@
 
 Every conversion between the project's six parameters, 4x4 matrices, ``SimpleITK.Euler3DTransform``,
 MONAI ``MetaTensor`` affines and the normalized ``theta`` that ``torch.nn.functional.affine_grid`` needs
-lives here. Nothing else in the package re-derives them (see ``shared/conventions.md``).
+lives here. Nothing else in the package re-derives them (see ``docs/conventions.md``).
 
 Conventions
 -----------
@@ -51,6 +51,8 @@ __all__ = [
     "ras_to_lps_affine",
     "transform_points",
     "target_registration_error",
+    "point_distances_torch",
+    "wrap_degrees",
     "parameter_errors",
     "grid_points",
     "mask_points",
@@ -535,6 +537,34 @@ def target_registration_error(
     return float(reducers[reduction](d))
 
 
+def point_distances_torch(params_pred: torch.Tensor, params_true: torch.Tensor, points: torch.Tensor,
+                          center: Any = None) -> torch.Tensor:
+    """Batched, differentiable :func:`target_registration_error` per point: ``|T_pred(x) - T_true(x)|`` (mm).
+
+    Args:
+        params_pred, params_true: ``[B, 6]`` (mm, degrees) about ``center``.
+        points: ``[N, 3]`` LPS points (mm).
+        center: ``[3]`` or ``[B, 3]`` rotation centre (mm; default origin).
+
+    Returns:
+        ``[B, N]`` distances in the dtype of ``params_pred`` promoted to at least float32; exactly 0 with a zero
+        (finite) gradient where the transforms agree.
+    """
+    dt = torch.promote_types(params_pred.dtype, torch.float32)
+    m_pred = params_to_matrix_torch(params_pred.to(dt), center)
+    m_true = params_to_matrix_torch(params_true.to(device=params_pred.device, dtype=dt), center)
+    diff = m_pred - m_true  # [B, 4, 4]; (T_pred - T_true)(x) = diff[:3, :3] x + diff[:3, 3]
+    pts = points.to(device=params_pred.device, dtype=dt)
+    d = pts @ diff[:, :3, :3].transpose(1, 2) + diff[:, None, :3, 3]  # [B, N, 3]
+    d2 = (d * d).sum(-1)
+    return d2 / torch.sqrt(d2.clamp_min(1e-12))  # = sqrt(d2), but 0 with a finite (zero) gradient at d2 = 0
+
+
+def wrap_degrees(angles: Any) -> Any:
+    """Angles in degrees wrapped to ``[-180, 180)``: a number, numpy array or torch tensor (floor modulo)."""
+    return (angles + 180.0) % 360.0 - 180.0
+
+
 def parameter_errors(pred: ArrayLike, true: ArrayLike) -> np.ndarray:
     """Per-axis absolute errors ``|pred - true|`` of ``(tx, ty, tz, rx, ry, rz)`` (mm, degrees).
 
@@ -546,5 +576,5 @@ def parameter_errors(pred: ArrayLike, true: ArrayLike) -> np.ndarray:
     if p.shape != t.shape or p.shape[-1] != 6:
         raise ValueError(f"pred and true must both be [..., 6], got {p.shape} and {t.shape}")
     d = p - t
-    d[..., 3:] = (d[..., 3:] + 180.0) % 360.0 - 180.0
+    d[..., 3:] = wrap_degrees(d[..., 3:])
     return np.abs(d)

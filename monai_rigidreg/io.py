@@ -7,9 +7,11 @@ letting a bare SimpleITK/GDCM traceback through, and refuses to overwrite output
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+import nibabel as nib
 import numpy as np
 import SimpleITK as sitk
 import torch
@@ -206,8 +208,6 @@ def load_volume(
         if check_finite and _suffix(p) in (".nii", ".nii.gz"):
             # the second read (nibabel) runs while SimpleITK reads: both decompress without holding the GIL
             # (benchmarks/bench_inference_speed.py: a 256^3 float32 CT in 0.20 s instead of 0.31 s on 2 cores)
-            from concurrent.futures import ThreadPoolExecutor
-
             pool = ThreadPoolExecutor(max_workers=1)
             nifti_check = pool.submit(_check_nifti_finite, p)
             pool.shutdown(wait=False)
@@ -230,8 +230,6 @@ def load_volume(
 
 def _check_nifti_finite(path: Path) -> None:
     """ITK's NIfTI reader silently replaces NaN by 0: look at the stored floats with nibabel instead."""
-    import nibabel as nib
-
     try:
         img = nib.load(str(path))
     except Exception:  # noqa: BLE001 - SimpleITK could read it; nibabel's opinion is only a second check

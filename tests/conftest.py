@@ -1,6 +1,9 @@
-"""Shared fixtures: small deterministic volumes, seeds and the optional real-data directory."""
+"""Shared fixtures and helpers: small deterministic volumes, a DICOM series writer, seeds, the real-data directory."""
 
 from __future__ import annotations
+
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -27,6 +30,37 @@ def smooth_random_image(size_xyz, spacing, origin, direction, seed=0, sigma_mm=3
     img.SetOrigin(origin)
     img.SetDirection(direction)
     return img
+
+
+def write_dicom_series(image: sitk.Image, directory: str | Path, series_uid: str, shuffle_seed: int = 0) -> None:
+    """Write ``image`` as a CT DICOM series into ``directory``, one file per slice, file names in random order.
+
+    A plain function, so that any test builds its DICOM input with ``from conftest import write_dicom_series``.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    img16 = sitk.Cast(sitk.RescaleIntensity(image, -1000, 2000), sitk.sitkInt16)
+    direction = img16.GetDirection()
+    iop = "\\".join(f"{v:.10f}" for v in (direction[0], direction[3], direction[6], direction[1], direction[4],
+                                          direction[7]))
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    order = np.random.default_rng(shuffle_seed).permutation(img16.GetDepth())
+    for k in range(img16.GetDepth()):
+        sl = img16[:, :, k]
+        for tag, value in [
+            ("0008|0060", "CT"),
+            ("0008|0021", time.strftime("%Y%m%d")),
+            ("0020|000d", "1.2.826.0.1.3680043.2.1125.1"),
+            ("0020|000e", series_uid),
+            ("0020|0037", iop),
+            ("0020|0032", "\\".join(f"{v:.6f}" for v in img16.TransformIndexToPhysicalPoint((0, 0, k)))),
+            ("0020|0013", str(k + 1)),
+            ("0018|0050", str(img16.GetSpacing()[2])),
+        ]:
+            sl.SetMetaData(tag, value)
+        writer.SetFileName(str(directory / f"img_{order[k]:04d}.dcm"))
+        writer.Execute(sl)
 
 
 @pytest.fixture
@@ -57,3 +91,27 @@ def tiny_dataset(tmp_path_factory):
     out = tmp_path_factory.mktemp("tiny_sim")
     return simulate_dataset(out, phantom="shepp-logan-asym", protocol="random", num_cases=3, seed=1, progress=False,
                             **TINY_SIM)
+
+
+KNOWN_MOTION = [6.0, -4.0, 5.0, 3.0, -2.0, 4.0]
+"""Ground truth of :func:`fast_pair` (mm, degrees, fixed -> moving about the CT centre)."""
+
+
+@pytest.fixture(scope="session")
+def fast_pair(tmp_path_factory):
+    """A pair at the ``fast`` preset (Sim-CT 64^3 at 4 mm, CBCT 48^3 at 5 mm) under :data:`KNOWN_MOTION`."""
+    from monai_rigidreg.simulation import simulate_pair
+
+    return simulate_pair(tmp_path_factory.mktemp("fast_pair"), phantom="shepp-logan-asym", params=KNOWN_MOTION,
+                         seed=4)
+
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+"""Devices every device-generic test runs on: the CPU always, CUDA where present."""
+
+
+@pytest.fixture(params=[(d, t) for d in DEVICES for t in (torch.float32, torch.float64)],
+                ids=lambda p: f"{p[0]}-{str(p[1]).split('.')[-1]}")
+def device_dtype(request) -> tuple[torch.device, torch.dtype]:
+    """``(device, dtype)`` for the network, warp, loss and fine-stage tests: CPU and CUDA, float32 and float64."""
+    return torch.device(request.param[0]), request.param[1]

@@ -1,4 +1,4 @@
-"""Tests of the Gauss-Newton alignment stage (monai_rigidreg.networks.alignment) and its use in the network."""
+"""Tests of the weight-free Gauss-Newton stage (monai_rigidreg.networks.gauss_newton) and of the two-stage network."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import torch
 from monai_rigidreg.engine import RegistrationCriterion
 from monai_rigidreg.geometry import Grid, matrix_to_params_torch, params_to_matrix_torch, rotation_matrix
 from monai_rigidreg.losses import RigidRegistrationLoss
-from monai_rigidreg.networks import DualEncoderRigidNet
-from monai_rigidreg.networks.alignment import fixed_jacobian, gauss_newton_align, parameter_flow, polynomial_basis
+from monai_rigidreg.networks import DualEncoderRigidNet, GaussNewtonStage, TwoStageRigidNet
+from monai_rigidreg.networks.gauss_newton import fixed_jacobian, gauss_newton_align, parameter_flow, polynomial_basis
 from monai_rigidreg.warp import warp_volume
 
 TINY = {"channels": (4, 8, 8), "strides": (2, 2, 2), "pool_size": 2, "hidden": (16,)}
@@ -66,15 +66,18 @@ def test_parameter_flow_translation_and_rotation_units():
 
 
 @pytest.mark.parametrize("params", [[4.0, -3.0, 2.0, 3.0, -4.0, 5.0], [8.0, 0.0, 0.0, 0.0, 0.0, 8.0]])
-def test_gauss_newton_recovers_known_motion(params):
+def test_gauss_newton_recovers_known_motion(params, device_dtype):
+    device, dtype = device_dtype
     grid = Grid.centered((32, 32, 32), (3.0, 3.0, 3.0), (0.0, 0.0, 0.0))
     fixed = _blobs(grid.size, seed=1)
     p = torch.tensor([params], dtype=torch.float64)
-    moving = _moving_for(fixed, p, grid)
-    total = torch.eye(4, dtype=torch.float64)[None]
+    moving = _moving_for(fixed, p, grid).to(device, dtype)
+    fixed = fixed.to(device, dtype)
+    total = torch.eye(4, dtype=torch.float64, device=device)[None]
     for level_iters in (10, 10):
         total = gauss_newton_align(moving, fixed, grid, total, iterations=level_iters)
-    est = matrix_to_params_torch(total, grid.center())[0]
+    assert total.dtype == torch.float64 and total.device.type == device.type
+    est = matrix_to_params_torch(total, grid.center())[0].cpu()
     np.testing.assert_allclose(est[:3].numpy(), params[:3], atol=0.2)
     np.testing.assert_allclose(est[3:].numpy(), params[3:], atol=0.2)
 
@@ -185,38 +188,78 @@ def test_untrained_network_with_alignment_stage_registers_and_trains():
     fixed = _blobs(grid.size, seed=5, n=12, spread=0.4, sharp=3.0)
     p = torch.tensor([[5.0, -3.0, 2.0, 2.0, -3.0, 4.0]], dtype=torch.float64)
     moving = _moving_for(fixed, p, grid)
-    net = DualEncoderRigidNet(align_iterations=(5, 5, 5), grid_spacing=grid.spacing, **TINY)
+    net = TwoStageRigidNet(DualEncoderRigidNet(**TINY), GaussNewtonStage(grid.spacing, iterations=(5, 5, 5)))
     with torch.no_grad():
-        est = net.forward_pair(moving.float(), fixed.float())
-    assert torch.allclose(net.last_coarse, torch.zeros(1, 6))  # zero-initialised head: identity start
-    np.testing.assert_allclose(est[0].numpy(), p[0].numpy(), atol=0.2)
-    # one training step through the criterion: the coarse term is logged, every stage receives gradients
+        stages = net.forward_stages(moving.float(), fixed.float())
+    assert torch.allclose(stages["coarse"], torch.zeros(1, 6))  # zero-initialised head: identity start
+    np.testing.assert_allclose(stages["params"][0].numpy(), p[0].numpy(), atol=0.2)
+    assert torch.equal(net(torch.cat([moving, fixed], 1).float()), stages["params"])  # bundle form: the final one
+    # one training step through the criterion, given the stage estimates as the prediction: the coarse term is
+    # logged and every stage receives gradients
     crit = RegistrationCriterion((32, 32, 32), grid.spacing, RigidRegistrationLoss(w_ssim=0, w_ncc=0, w_mi=0,
-                                 w_sup=1.0), network=net, w_coarse=0.5)
-    x = torch.cat([moving, fixed], 1).float()
-    pred = net(x)
+                                 w_sup=1.0), w_coarse=0.5)
+    pred = net(torch.cat([moving, fixed], 1).float(), stages=True)
     loss = crit(pred, {"moving": moving.float(), "fixed": fixed.float(), "params": p.float()})
     loss.backward()
     assert crit.last_terms["coarse"] > 5.0  # identity start: the regression is several mm off
-    assert net.head.weight.grad.abs().sum() > 0
+    assert net.regression.head.weight.grad.abs().sum() > 0
+    # the fine stage alone, and without levels: the start comes back unchanged
+    start = torch.tensor([[1.0, 2.0, 3.0, 4.0, 5.0, 6.0]])
+    out, from_start = GaussNewtonStage(grid.spacing, iterations=(0, 0, 0))(moving.float(), fixed.float(), start)
+    torch.testing.assert_close(out, start, atol=1e-5, rtol=0)
+    assert from_start.tolist() == [True]
     with pytest.raises(ValueError, match="differ in length"):
-        DualEncoderRigidNet(align_iterations=(1, 2), align_levels=(4, 2, 1), **TINY)
+        GaussNewtonStage(grid.spacing, iterations=(1, 2), levels=(4, 2, 1))
+
+
+def test_regression_alone_is_the_switched_off_two_stage_net():
+    """``fine_stage_enabled=False`` (the bundle's ``fine_stage: false``) returns the regression's own estimate."""
+    grid = Grid.centered((32, 32, 32), (4.0, 4.0, 4.0), (0.0, 0.0, 0.0))
+    fixed = _blobs(grid.size, seed=5, n=12, spread=0.4, sharp=3.0).float()
+    moving = _moving_for(fixed.double(), torch.tensor([[5.0, -3.0, 2.0, 2.0, -3.0, 4.0]], dtype=torch.float64),
+                         grid).float()
+    torch.manual_seed(0)
+    reg = DualEncoderRigidNet(**TINY)
+    torch.nn.init.normal_(reg.head.weight, std=0.05)  # a regression that does not say "identity"
+    both = TwoStageRigidNet(reg, GaussNewtonStage(grid.spacing, iterations=(5, 5, 5))).eval()
+    alone = TwoStageRigidNet(reg, GaussNewtonStage(grid.spacing), fine_stage_enabled=False).eval()
+    with torch.no_grad():
+        coarse = reg.forward_pair(moving, fixed)
+        assert torch.equal(alone.forward_pair(moving, fixed), coarse)
+        assert not torch.allclose(both.forward_pair(moving, fixed), coarse, atol=0.1)
+
+
+def test_two_stage_net_loads_flat_regression_checkpoints():
+    """Bundle 0.2.x checkpoints hold the regression's keys without the ``regression.`` prefix."""
+    torch.manual_seed(1)
+    src = DualEncoderRigidNet(**TINY)
+    net = TwoStageRigidNet(DualEncoderRigidNet(**TINY), GaussNewtonStage((4.0, 4.0, 4.0)))
+    net.load_state_dict(src.state_dict())  # flat keys
+    for key, value in src.state_dict().items():
+        assert torch.equal(net.state_dict()[f"regression.{key}"], value)
+    again = TwoStageRigidNet(DualEncoderRigidNet(**TINY), GaussNewtonStage((4.0, 4.0, 4.0)))
+    again.load_state_dict(net.state_dict())  # prefixed keys (what training saves now)
+    assert all(torch.equal(v, again.state_dict()[k]) for k, v in net.state_dict().items())
+    with pytest.raises(RuntimeError, match="Missing key"):
+        net.load_state_dict({k: v for k, v in src.state_dict().items() if not k.startswith("head")})
 
 
 def test_network_jacobian_per_level_and_its_length_check():
-    """``align_jacobian`` per pyramid level: symmetric steps on the last level end where the default does on a clean
+    """``jacobian`` per pyramid level: symmetric steps on the last level end where the default does on a clean
     pair, near the known motion; a list of the wrong length is refused."""
     grid = Grid.centered((32, 32, 32), (3.0, 3.0, 3.0), (0.0, 0.0, 0.0))
     fixed = _blobs(grid.size, seed=1).float()
     p = torch.tensor([[4.0, -3.0, 2.0, 3.0, -4.0, 5.0]])
     moving = _moving_for(fixed.double(), p.double(), grid).float()
-    kw = dict(TINY, align_iterations=(10, 10), align_levels=(2, 1), grid_spacing=grid.spacing, support_threshold=-1.0)
+    kw = dict(iterations=(10, 10), levels=(2, 1), support_threshold=-1.0)
     ests = []
     for jac in ("fixed", ("fixed", "symmetric")):
-        net = DualEncoderRigidNet(**kw, align_jacobian=jac).eval()
+        net = TwoStageRigidNet(DualEncoderRigidNet(**TINY), GaussNewtonStage(grid.spacing, **kw, jacobian=jac)).eval()
         with torch.no_grad():
             ests.append(net.forward_pair(moving, fixed)[0].numpy())
         np.testing.assert_allclose(ests[-1], p[0].numpy(), atol=1.0)  # the fixed features' own precision here
     np.testing.assert_allclose(ests[1], ests[0], atol=0.3)
     with pytest.raises(ValueError, match="one entry per level"):
-        DualEncoderRigidNet(**kw, align_jacobian=("fixed", "fixed", "symmetric"))
+        GaussNewtonStage(grid.spacing, **kw, jacobian=("fixed", "fixed", "symmetric"))
+    with pytest.raises(ValueError, match="jacobian must be one of"):
+        GaussNewtonStage(grid.spacing, **kw, jacobian="sideways")

@@ -1,4 +1,6 @@
-"""The MONAI bundle: metadata, CPU training with checkpoint + resume, torchrun (gloo), offline inference, export."""
+"""The MONAI bundle: metadata, offline inference with the shipped weights, the regression-only switch, TorchScript
+export compared with the eager model, CPU training with checkpoint + resume and torchrun (gloo) (the last two
+``slow``)."""
 
 from __future__ import annotations
 
@@ -14,8 +16,8 @@ import pytest
 import SimpleITK as sitk
 
 BUNDLE = Path(__file__).resolve().parents[1] / "bundles" / "cbct_ct_rigid"
-TINY = ["--network_size", "[32,32,32]", "--network_spacing", "[8.0,8.0,8.0]", "--network_def#pool_size", "2",
-        "--network_def#channels", "[4,8,8,8]", "--num_workers", "0", "--cascade_steps", "2"]
+TINY = ["--network_size", "[32,32,32]", "--network_spacing", "[8.0,8.0,8.0]", "--network_def#regression#pool_size",
+        "2", "--network_def#regression#channels", "[4,8,8,8]", "--num_workers", "0", "--cascade_steps", "2"]
 
 # What MONAI's model-zoo metadata schema requires (the schema itself is downloaded by verify_metadata, which
 # needs a network; this is its required-field content, checked offline).
@@ -53,6 +55,14 @@ def run_bundle(args: list[str], cwd: Path, timeout: int = 400, module: str = "mo
 
 
 @pytest.fixture(scope="module")
+def shipped_bundle(tmp_path_factory):
+    """A copy of the shipped bundle with its weights (nothing is written into the checkout)."""
+    dst = tmp_path_factory.mktemp("shipped") / "cbct_ct_rigid"
+    shutil.copytree(BUNDLE, dst, ignore=shutil.ignore_patterns("*.ts", "runs", "eval"))
+    return dst
+
+
+@pytest.fixture(scope="module")
 def bundle_copy(tmp_path_factory):
     dst = tmp_path_factory.mktemp("bundle") / "cbct_ct_rigid"
     shutil.copytree(BUNDLE, dst, ignore=shutil.ignore_patterns("model.pt", "*.ts", "runs", "eval"))
@@ -82,8 +92,15 @@ def test_shipped_weights_load_and_are_small():
     net, settings = load_bundle_network(BUNDLE)
     assert settings["network_size"] == json.loads((BUNDLE / "configs" / "inference.json").read_text())["network_size"]
     assert sum(p.numel() for p in net.parameters()) > 0
+    # the composed network as shipped: the learned regression, then the weight-free fine stage at the grid spacing
+    from monai_rigidreg.networks import GaussNewtonStage, TwoStageRigidNet
+
+    assert isinstance(net, TwoStageRigidNet) and isinstance(net.fine_stage, GaussNewtonStage)
+    assert net.fine_stage.grid_spacing == tuple(settings["network_spacing"])
+    assert sum(p.numel() for p in net.fine_stage.parameters()) == 0
 
 
+@pytest.mark.slow
 def test_train_writes_checkpoint_and_resumes(bundle_copy, tiny_dataset, tmp_path):
     common = ["run", "--config_file", str(bundle_copy / "configs" / "train.json"), "--bundle_root", str(bundle_copy),
               "--datalist", str(tiny_dataset), "--val_datalist", str(tiny_dataset), "--epoch_length", "2",
@@ -99,9 +116,11 @@ def test_train_writes_checkpoint_and_resumes(bundle_copy, tiny_dataset, tmp_path
     assert "epoch 1 until 2 epochs" in out  # ignite continues after the restored epoch
     assert (tmp_path / "ckpt" / "checkpoint_checkpoint_epoch=2.pt").is_file()
     assert len(json.loads((tmp_path / "runs" / "history.json").read_text())) == 1  # this run's single epoch
-    shutil.copy(tmp_path / "ckpt" / "model.pt", bundle_copy / "models" / "model.pt")
+    # the coarse (regression) term reached the criterion as a value of the staged inferer
+    assert "loss_coarse" in json.loads((tmp_path / "runs" / "history.json").read_text())[0]
 
 
+@pytest.mark.slow
 def test_torchrun_two_processes_gloo(bundle_copy, tiny_dataset, tmp_path):
     configs = json.dumps([str(bundle_copy / "configs" / "train.json"),
                           str(bundle_copy / "configs" / "multi_gpu_train.json")])
@@ -114,35 +133,65 @@ def test_torchrun_two_processes_gloo(bundle_copy, tiny_dataset, tmp_path):
     assert out.count("Epoch[1] Complete") >= 2  # both ranks trained
 
 
-def test_inference_registers_offline_and_exports(bundle_copy, tiny_dataset, tmp_path):
-    if not (bundle_copy / "models" / "model.pt").is_file():
-        pytest.skip("needs the checkpoint of test_train_writes_checkpoint_and_resumes")
-    item = json.loads(Path(tiny_dataset).read_text())["training"][0]
-    root = Path(tiny_dataset).parent
-    out_dir = tmp_path / "out"
-    run_bundle(["run", "--config_file", str(bundle_copy / "configs" / "inference.json"), "--bundle_root",
-                str(bundle_copy), "--fixed", str(root / item["fixed"]), "--moving", str(root / item["moving"]),
-                "--output_dir", str(out_dir), *[a for a in TINY if a not in ("--num_workers", "0")]], bundle_copy)
+def _inference(bundle: Path, pair: dict, out_dir: Path, *extra: str) -> dict:
+    run_bundle(["run", "--config_file", str(bundle / "configs" / "inference.json"), "--bundle_root", str(bundle),
+                "--fixed", str(pair["fixed"]), "--moving", str(pair["moving"]), "--output_dir", str(out_dir), *extra],
+               bundle)
+    return json.loads((out_dir / "result.json").read_text())
+
+
+def test_inference_registers_offline_with_the_shipped_weights(shipped_bundle, fast_pair, tmp_path):
+    """``python -m monai.bundle run`` on the inference config: the four outputs, consistent with each other, and the
+    known motion of the simulated pair recovered; ``--fine_stage False`` runs the regression alone."""
+    from conftest import KNOWN_MOTION
+
+    from monai_rigidreg.evaluation.evaluate import body_points
+    from monai_rigidreg.geometry import target_registration_error
+    from monai_rigidreg.io import load_volume
+
+    result = _inference(shipped_bundle, fast_pair, tmp_path / "out")
     for name in ("transform.tfm", "registered.nii.gz", "result.json", "qc.png"):
-        assert (out_dir / name).is_file(), name
-    tfm = sitk.ReadTransform(str(out_dir / "transform.tfm"))
-    result = json.loads((out_dir / "result.json").read_text())
+        assert (tmp_path / "out" / name).is_file(), name
+    tfm = sitk.ReadTransform(str(tmp_path / "out" / "transform.tfm"))
     np.testing.assert_allclose(tfm.GetParameters()[3:], [result["params"][k] for k in ("tx", "ty", "tz")], atol=1e-6)
-    cfg = ["--meta_file", str(bundle_copy / "configs" / "metadata.json"), "--config_file",
-           str(bundle_copy / "configs" / "inference.json"), "--bundle_root", str(bundle_copy),
-           "--network_def#channels", "[4,8,8,8]", "--network_def#pool_size", "2"]
-    # the metadata's spatial shape must match the network: use a copy of the metadata with the tiny shape
-    meta = json.loads((bundle_copy / "configs" / "metadata.json").read_text())
-    meta["network_data_format"]["inputs"]["image"]["spatial_shape"] = [32, 32, 32]
-    (tmp_path / "meta.json").write_text(json.dumps(meta))
-    cfg[1] = str(tmp_path / "meta.json")
-    run_bundle(["verify_net_in_out", "network_def", *cfg, "--n", "1", "--any", "32"], bundle_copy)
-    ts = tmp_path / "model.ts"
-    # the alignment stage builds its grid from the input shape: exported by tracing at the network grid size
-    run_bundle(["ckpt_export", "network_def", "--filepath", str(ts), "--ckpt_file",
-                str(bundle_copy / "models" / "model.pt"), "--use_trace", "True", "--input_shape", "[1, 2, 32, 32, 32]",
-                *cfg], bundle_copy)
+    names = ("tx", "ty", "tz", "rx", "ry", "rz")
+    pts = body_points(load_volume(fast_pair["fixed"]))
+    tre = target_registration_error([result["params"][k] for k in names], KNOWN_MOTION, pts, center=result["center"])
+    assert tre < 2.0  # as register() on the same pair (tests/test_register.py)
+    # the regression alone (tests/test_alignment.py pins that the switch returns exactly its estimate): another answer
+    alone = _inference(shipped_bundle, fast_pair, tmp_path / "alone", "--fine_stage", "False")
+    assert np.abs(np.subtract([alone["params"][k] for k in names], [result["params"][k] for k in names])).max() > 0.01
+
+
+def test_export_by_tracing_matches_the_eager_model(shipped_bundle, tmp_path):
+    """``verify_net_in_out`` and ``ckpt_export --use_trace`` on the shipped weights; the TorchScript model gives
+    the eager model's estimate on a structured input with a known shift."""
     import torch
 
-    scripted = torch.jit.load(str(ts))
-    assert tuple(scripted(torch.rand(1, 2, 32, 32, 32)).shape) == (1, 6)
+    from monai_rigidreg.bundle import load_bundle_network
+    from monai_rigidreg.warp import warp_volume_params
+
+    cfg = ["--meta_file", str(shipped_bundle / "configs" / "metadata.json"), "--config_file",
+           str(shipped_bundle / "configs" / "inference.json"), "--bundle_root", str(shipped_bundle)]
+    run_bundle(["verify_net_in_out", "network_def", *cfg, "--n", "1", "--any", "64"], shipped_bundle)
+    ts = tmp_path / "model.ts"
+    # the fine stage builds its grid from the input shape: exported by tracing at the network grid size
+    run_bundle(["ckpt_export", "network_def", "--filepath", str(ts), "--ckpt_file",
+                str(shipped_bundle / "models" / "model.pt"), "--use_trace", "True", "--input_shape",
+                "[1, 2, 64, 64, 64]", *cfg], shipped_bundle)
+    traced = torch.jit.load(str(ts))
+    eager, settings = load_bundle_network(shipped_bundle)
+    grid_size = tuple(settings["network_size"])
+    from monai_rigidreg.geometry import Grid
+
+    grid = Grid.centered(grid_size, settings["network_spacing"])
+    g = torch.Generator().manual_seed(0)
+    fixed = torch.nn.functional.avg_pool3d(torch.rand(1, 1, *grid_size, generator=g), 5, 1, 2)
+    fixed = (fixed - fixed.min()) / (fixed.max() - fixed.min())
+    moving = warp_volume_params(fixed, torch.tensor([[4.0, -2.0, 3.0, 2.0, 0.0, -3.0]]), grid)
+    x = torch.cat([moving, fixed], 1)
+    with torch.no_grad():
+        want = eager(x)
+        got = traced(x)
+    assert tuple(got.shape) == (1, 6)
+    torch.testing.assert_close(got, want, atol=1e-3, rtol=0)

@@ -166,3 +166,20 @@ def test_tre_and_parameter_errors():
     assert target_registration_error(t_pred, t_true, mask) == pytest.approx(5.0)
     err = parameter_errors([[1, 2, 3, 179, 0, -1]], [[0, 2, 5, -179, 0, 1]])
     np.testing.assert_allclose(err, [[1, 0, 2, 2, 0, 2]], atol=1e-12)
+
+
+def test_worked_examples_3_5_6_7_of_the_conventions_page_exactly():
+    """The numbers of docs/conventions.md examples 3 (re-centring), 5 (LPS/RAS), 6 (torch theta) and 7 (wrap)."""
+    np.testing.assert_allclose(recenter_params([5, 0, 0, 10, 0, 0], (0, 0, 0), (0, 10, 0)),
+                               [5, -0.1519, 1.7365, 10, 0, 0], atol=1e-4)
+    lps = np.array([10.0, 20.0, 30.0, 1.0])
+    flip = lps_to_ras_affine(np.eye(4))
+    np.testing.assert_allclose(flip @ lps, [-10, -20, 30, 1])
+    np.testing.assert_allclose(ras_to_lps_affine(flip), np.eye(4))
+    grid = Grid((4, 4, 4), (2.0, 2.0, 2.0), (-3.0, -3.0, -3.0))
+    m = torch.tensor(params_to_matrix([2, 0, 0, 0, 0, 0], grid.center()))[None]
+    np.testing.assert_allclose(normalized_theta(m, grid, grid)[0].numpy(),
+                               [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2 / 3]], atol=1e-12)
+    np.testing.assert_allclose(normalized_theta(m, grid, grid, array_order="zyx")[0].numpy(),
+                               [[1, 0, 0, 2 / 3], [0, 1, 0, 0], [0, 0, 1, 0]], atol=1e-12)
+    np.testing.assert_allclose(parameter_errors([1, 2, 3, 179, 0, -1], [0, 2, 5, -179, 0, 1]), [1, 0, 2, 2, 0, 2])

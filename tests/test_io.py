@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from conftest import oblique_direction, smooth_random_image
+from conftest import oblique_direction, smooth_random_image, write_dicom_series
 
 from monai_rigidreg.errors import InputError, OutputExistsError
 from monai_rigidreg.geometry import Grid, params_to_sitk, sitk_to_params
@@ -28,33 +26,6 @@ from monai_rigidreg.io import (
 def volume():
     img = smooth_random_image((20, 18, 16), (1.0, 1.5, 2.0), (-10.0, 5.0, 3.0), oblique_direction(0, 0, 15))
     return sitk.Cast(img * 1000, sitk.sitkFloat32)
-
-
-def write_dicom_series(image: sitk.Image, directory, series_uid: str, shuffle_seed: int = 0) -> None:
-    """Write ``image`` as a CT DICOM series, one file per slice, with file names in random order."""
-    directory.mkdir(parents=True, exist_ok=True)
-    img16 = sitk.Cast(sitk.RescaleIntensity(image, -1000, 2000), sitk.sitkInt16)
-    direction = img16.GetDirection()
-    iop = "\\".join(f"{v:.10f}" for v in (direction[0], direction[3], direction[6], direction[1], direction[4],
-                                          direction[7]))
-    writer = sitk.ImageFileWriter()
-    writer.KeepOriginalImageUIDOn()
-    order = np.random.default_rng(shuffle_seed).permutation(img16.GetDepth())
-    for k in range(img16.GetDepth()):
-        sl = img16[:, :, k]
-        for tag, value in [
-            ("0008|0060", "CT"),
-            ("0008|0021", time.strftime("%Y%m%d")),
-            ("0020|000d", "1.2.826.0.1.3680043.2.1125.1"),
-            ("0020|000e", series_uid),
-            ("0020|0037", iop),
-            ("0020|0032", "\\".join(f"{v:.6f}" for v in img16.TransformIndexToPhysicalPoint((0, 0, k)))),
-            ("0020|0013", str(k + 1)),
-            ("0018|0050", str(img16.GetSpacing()[2])),
-        ]:
-            sl.SetMetaData(tag, value)
-        writer.SetFileName(str(directory / f"img_{order[k]:04d}.dcm"))
-        writer.Execute(sl)
 
 
 @pytest.mark.parametrize("suffix", [".nii.gz", ".nii", ".mha", ".nrrd"])

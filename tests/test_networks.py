@@ -16,11 +16,10 @@ from monai_rigidreg.networks import (
     RigidTransformer,
     cascade_register,
 )
-from monai_rigidreg.networks.toy import phantom_pair_batch, random_params
+from monai_rigidreg.simulation.toy import phantom_pair_batch, random_params
 from monai_rigidreg.warp import warp_volume
 
 TINY = {"channels": (4, 8, 8), "strides": (2, 2, 2), "pool_size": 2, "hidden": (16,)}
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
 def _randomize_head(net: DualEncoderRigidNet, scale: float = 1.0, seed: int = 0) -> None:
@@ -50,13 +49,12 @@ def _smooth_volume(size: tuple[int, int, int], seed: int = 0, sigma: float = 1.5
 # DualEncoderRigidNet
 # ---------------------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("fusion", FUSIONS)
-@pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_net_shape_dtype_device(fusion, device, dtype):
+def test_net_shape_dtype_device(fusion, device_dtype):
+    device, dtype = device_dtype
     net = DualEncoderRigidNet(fusion=fusion, **TINY).to(device=device, dtype=dtype)
     x = torch.rand(2, 2, 16, 20, 24, device=device, dtype=dtype)
     out = net(x)
-    assert out.shape == (2, 6) and out.dtype == dtype and out.device.type == device
+    assert out.shape == (2, 6) and out.dtype == dtype and out.device.type == device.type
     assert net.forward_pair(x[:, :1], x[:, 1:]).shape == (2, 6)
 
 

@@ -8,17 +8,18 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 import torch
-from conftest import TINY_SIM
-from test_io import write_dicom_series
+from conftest import KNOWN_MOTION, TINY_SIM, write_dicom_series
 
 from monai_rigidreg.cli import main
+from monai_rigidreg.confidence import confidence_score
 from monai_rigidreg.errors import InputError, OutputExistsError
 from monai_rigidreg.geometry import Grid, target_registration_error
 from monai_rigidreg.io import load_volume, read_transform
 from monai_rigidreg.networks import DualEncoderRigidNet
-from monai_rigidreg.register import RigidRegistrar, confidence_score, register, write_outputs
+from monai_rigidreg.outputs import write_outputs
+from monai_rigidreg.registration import RigidRegistrar, register
 
-MOTION = [6.0, -4.0, 5.0, 3.0, -2.0, 4.0]
+MOTION = KNOWN_MOTION
 
 
 @pytest.fixture(scope="module")
@@ -174,14 +175,6 @@ def test_register_command_with_dicom_and_overwrite_rules(pair, tmp_path, monkeyp
                  str(tmp_path / "never")]) == 2
 
 
-@pytest.fixture(scope="module")
-def fast_pair(tmp_path_factory):
-    """A pair at the ``fast`` preset (Sim-CT 64^3 at 4 mm, CBCT 48^3 at 5 mm): the network grid's resolution."""
-    from monai_rigidreg.simulation import simulate_pair
-
-    return simulate_pair(tmp_path_factory.mktemp("fast_pair"), phantom="shepp-logan-asym", params=MOTION, seed=4)
-
-
 def test_shipped_model_recovers_known_motion(fast_pair):
     """The shipped bundle weights on a simulated pair (network, then with refinement)."""
     pair = fast_pair
@@ -201,3 +194,50 @@ def test_shipped_model_recovers_known_motion(fast_pair):
     assert tre_net < 2.0  # measured about 0.9 mm on this coarse pair (CT 4 mm, CBCT 5 mm voxels)
     assert not res.flagged  # a right answer is not flagged
     assert tre_ref < 2.0
+
+
+def test_package_register_is_the_function_and_takes_a_registrar_built_once(fast_pair):
+    """The README's call: ``monai_rigidreg.register(ct, cbct, model=registrar)`` with a registrar from the bundle."""
+    import monai_rigidreg
+    from monai_rigidreg import registration
+
+    assert monai_rigidreg.register is registration.register and callable(monai_rigidreg.register)
+    registrar = monai_rigidreg.RigidRegistrar.from_bundle(device="cpu")
+    a = monai_rigidreg.register(fast_pair["fixed"], fast_pair["moving"], model=registrar, resample_moving=False)
+    b = registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False)
+    np.testing.assert_array_equal(a.params, b.params)
+    # `import monai_rigidreg.registration` (done above) must not shadow the function
+    assert monai_rigidreg.register is registration.register
+
+
+def test_network_grid_comes_from_the_bundle_and_its_two_placements():
+    from monai_rigidreg.network_grid import NetworkGridSpec
+    from monai_rigidreg.networks import GaussNewtonStage, TwoStageRigidNet
+
+    shipped = NetworkGridSpec.from_bundle()
+    assert shipped.spacing == (2.0, 2.0, 2.0) and shipped.size == (64, 64, 64)
+    # a bare network gets the shipped bundle's grid, not a literal of its own
+    reg = RigidRegistrar(DualEncoderRigidNet(channels=(4, 8, 8, 8), pool_size=2), device="cpu")
+    assert reg.grid_spec == shipped
+    # a fine stage built for another spacing is refused rather than run on the wrong grid
+    net = TwoStageRigidNet(DualEncoderRigidNet(channels=(4, 8, 8, 8), pool_size=2), GaussNewtonStage((4.0,) * 3))
+    with pytest.raises(InputError, match="fine stage works at"):
+        RigidRegistrar(net, device="cpu")
+    # training placement on the CT centre, inference placement on the CBCT centre
+    ct = Grid.centered((100, 100, 50), (1.0, 1.0, 3.0), (10.0, -20.0, 30.0))
+    cbct = Grid.centered((64, 64, 64), (1.0, 1.0, 1.0), (40.0, 5.0, 0.0))
+    spec = NetworkGridSpec(16, 4.0)
+    np.testing.assert_allclose(spec.on_fixed(ct).center(), [10.0, -20.0, 30.0])
+    np.testing.assert_allclose(spec.on_moving(cbct).center(), [40.0, 5.0, 0.0])
+    np.testing.assert_allclose(spec.canonical().center(), [0.0, 0.0, 0.0])
+    assert spec.on_moving(cbct).size == (16, 16, 16) and spec.on_moving(cbct).spacing == (4.0, 4.0, 4.0)
+    assert spec.pooled(2) == NetworkGridSpec(8, 8.0)
+    with pytest.raises(InputError, match="spacing"):
+        NetworkGridSpec(16, 0.0)
+
+
+@pytest.mark.parametrize("steps", [0, -1, 1.5, "2"])
+def test_bad_cascade_steps_are_refused(small_registrar, steps):
+    with pytest.raises(InputError, match="cascade_steps"):
+        RigidRegistrar(small_registrar.network, network_size=(32, 32, 32), network_spacing=(8.0, 8.0, 8.0),
+                       cascade_steps=steps, device="cpu")

@@ -469,6 +469,44 @@ def test_cli(tmp_path, capsys):
     assert run(args) == 2 and "already exists" in capsys.readouterr().err
 
 
+def test_set_value_of_the_wrong_type_is_a_clean_error(tmp_path, capsys):
+    """``simulate --set cbct_views=many`` names the option and the value (an InputError, exit status 2), as does a
+    physics field of the wrong type or out of range; values of the right kind still pass."""
+    from monai_rigidreg.simulation import make_config
+    from monai_rigidreg.simulation.cli import main
+
+    for key, value in [("cbct_views", "many"), ("seed", 1.5), ("cbct_size", "big"), ("sod", "far"),
+                       ("mask_outside_fov", "no"), ("photons", "lots"), ("phantom", 3)]:
+        with pytest.raises(InputError, match=f"{key}.*{value!r}"):
+            make_config("fast", **{key: value})
+    with pytest.raises(InputError, match="photons"):
+        make_config("fast", photons=-1.0)
+    cfg = make_config("fast", cbct_views=np.int64(60), sod=900, mask_outside_fov=False, simct_size=(32, 32, 32))
+    assert cfg.cbct_views == 60 and cfg.mask_outside_fov is False and cfg.simct_size == (32, 32, 32)
+    out = tmp_path / "x"
+    assert main(["simulate", "--output-dir", str(out), "--device", "cpu", "--set", "cbct_views=many"]) == 2
+    err = capsys.readouterr().err
+    assert "cbct_views" in err and "'many'" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_output_dir_that_is_a_file_or_below_a_file(tmp_path, capsys):
+    """An --output-dir that is a file, or whose parent is a file, is refused before anything is simulated."""
+    from monai_rigidreg.simulation.cli import main
+
+    afile = tmp_path / "notes.txt"
+    afile.write_text("keep me")
+    with pytest.raises(OutputExistsError, match="is a file"):
+        simulate_dataset(afile, num_cases=1, device="cpu", progress=False, **TINY)
+    with pytest.raises(InputError, match="parent of it is a file"):
+        simulate_dataset(afile / "data", num_cases=1, device="cpu", progress=False, **TINY)
+    for out in (afile, afile / "data"):
+        assert main(["simulate", "--output-dir", str(out), "--device", "cpu", "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("monai-rigidreg simulate: error:") and str(afile) in err
+    assert afile.read_text() == "keep me"
+
+
 def test_volume_dtype_is_a_storage_choice(tmp_path):
     """Volumes are stored as int16 HU by default and as float32 on request (``--set volume_dtype=float32``); the
     choice is not part of the dataset's configuration identity, and anything else is refused."""

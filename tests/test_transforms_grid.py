@@ -7,8 +7,10 @@ import pytest
 import SimpleITK as sitk
 import torch
 from monai.data import MetaTensor
+from monai.transforms import GaussianSmooth
 
 from monai_rigidreg.geometry import Grid, rotation_matrix, transform_points
+from monai_rigidreg.image_ops import gaussian_smooth
 from monai_rigidreg.transforms import (
     NormalizeHU,
     NormalizeHUd,
@@ -177,10 +179,6 @@ def test_antialias_crops_to_the_grid_without_changing_values():
 def test_gaussian_smooth_equals_monai_gaussian_smooth(sigmas):
     """The shifted-sum separable filter reproduces MONAI's ``GaussianSmooth`` (kernel, truncation, zero padding),
     on several channels and a non-contiguous (transposed) view; a zero sigma leaves that axis alone."""
-    from monai.transforms import GaussianSmooth
-
-    from monai_rigidreg.transforms.grid import gaussian_smooth
-
     gen = torch.Generator().manual_seed(2)
     vol = (torch.randn(2, 14, 17, 11, generator=gen) * 100.0).permute(0, 3, 2, 1)  # [2, 11, 17, 14], a view
     got = gaussian_smooth(vol, sigmas)

@@ -21,6 +21,18 @@ def moving_image():
 FIXED = Grid((26, 22, 18), (1.2, 1.3, 1.7), (-12.0, 2.0, 0.0), oblique_direction(-5, 8, 3))
 
 
+def test_warp_on_every_device_and_dtype(moving_image, device_dtype):
+    """The same warp on CPU/CUDA in float32/float64: dtype and device kept, values those of the CPU float64 warp."""
+    device, dtype = device_dtype
+    params = [2, -3, 1.5, 5, -4, 7]
+    matrix = torch.tensor(params_to_matrix(params, FIXED.center()))[None]
+    vol = torch.from_numpy(sitk.GetArrayFromImage(moving_image).transpose(2, 1, 0).copy())[None, None]
+    ref = warp_volume(vol.double(), matrix, FIXED, Grid.from_sitk(moving_image))
+    out = warp_volume(vol.to(device, dtype), matrix.to(device), FIXED, Grid.from_sitk(moving_image))
+    assert out.dtype == dtype and out.device.type == device.type
+    torch.testing.assert_close(out.cpu().double(), ref, atol=1e-4 * float(ref.abs().max()), rtol=0)
+
+
 @pytest.mark.parametrize("params", [[0, 0, 0, 0, 0, 0], [2, -3, 1.5, 5, -4, 7], [-4, 1, 2, -12, 3, -9]])
 @pytest.mark.parametrize("array_order", ["xyz", "zyx"])
 def test_warp_matches_sitk_resample(moving_image, params, array_order):

@@ -10,11 +10,13 @@ from monai_rigidreg.engine.handlers import (
     TrainingCurveHandler,
     plot_history,
 )
+from monai_rigidreg.engine.inferer import StagedInferer
 from monai_rigidreg.engine.metrics import RigidErrorHandler, RigidErrorMetric, error_handlers, from_registration_output
 
 __all__ = [
     "RegistrationPrepareBatch",
     "RegistrationCriterion",
+    "StagedInferer",
     "canonical_grid",
     "registration_transforms",
     "LossTermsHandler",

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from monai_rigidreg.bundle import default_bundle_path
 from monai_rigidreg.errors import InputError
 
 __all__ = ["add_parser", "run", "bundle_command"]
@@ -41,8 +42,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def bundle_command(args: argparse.Namespace) -> list[str]:
     """The ``monai.bundle run`` command line for ``args``."""
-    from monai_rigidreg.bundle import default_bundle_path
-
     bundle = (args.bundle or default_bundle_path()).resolve()
     for p in (args.datalist, args.val_datalist):
         if not p.is_file():

@@ -23,9 +23,9 @@ MASK_KEY = "moving_fov"
 
 
 def registration_transforms(
-    mode: str = "train",
-    network_size: Sequence[int] = (64, 64, 64),
-    network_spacing: Sequence[float] = (4.0, 4.0, 4.0),
+    mode: str,
+    network_size: Sequence[int],
+    network_spacing: Sequence[float],
     translate_range: Any = 15.0,
     rotate_range: Any = 15.0,
     axis_prob: Any = 0.7,
@@ -37,14 +37,16 @@ def registration_transforms(
     ``matrix`` / ``center`` (as ``monai-rigidreg simulate`` writes) and an optional ``moving_fov`` mask.
 
     Steps: load (channel first, RAS ``MetaTensor``) -> resample ``moving``, ``fixed`` and ``moving_fov`` onto one
-    network grid centred on the fixed image (deterministic: ``CacheDataset`` caches up to here) -> ``train`` only:
-    random rigid motion of the moving CBCT (and its mask) composed with the recorded ground truth, and random
-    CBCT degradation -> HU window to [0, 1]. In every mode the ground truth ends up under ``"rigid_params"``
-    (``{"params" [6], "matrix" [4, 4], "center" [3]}``).
+    network grid centred on the fixed image (the training placement,
+    :meth:`~monai_rigidreg.network_grid.NetworkGridSpec.on_fixed`; deterministic: ``CacheDataset`` caches up to
+    here) -> ``train`` only: random rigid motion of the moving CBCT (and its mask) composed with the recorded
+    ground truth, and random CBCT degradation -> HU window to [0, 1]. In every mode the ground truth ends up under
+    ``"rigid_params"`` (``{"params" [6], "matrix" [4, 4], "center" [3]}``).
 
     Args:
         mode: ``"train"`` (random motion + degradation) or ``"val"`` (the recorded motion only).
-        network_size, network_spacing: network grid (voxels, mm).
+        network_size, network_spacing: network grid (voxels, mm): the bundle's ``network_size`` /
+            ``network_spacing``.
         translate_range, rotate_range, axis_prob: :class:`~monai_rigidreg.transforms.RandRigid6DoFd` ranges (mm,
             degrees) and per-axis probability of the extra random motion.
         degrade: apply :class:`~monai_rigidreg.transforms.RandCBCTDegradationd` in training.

@@ -5,9 +5,13 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
+
+from ignite.engine import Events
+from monai.handlers import CheckpointLoader, CheckpointSaver
 
 from monai_rigidreg.geometry import PARAM_NAMES
 
@@ -30,8 +34,6 @@ class LossTermsHandler:
         self._count = 0
 
     def attach(self, engine: Any) -> None:
-        from ignite.engine import Events
-
         engine.add_event_handler(Events.EPOCH_STARTED, self._reset)
         engine.add_event_handler(Events.ITERATION_COMPLETED, self._accumulate)
         engine.add_event_handler(Events.EPOCH_COMPLETED, self._publish)
@@ -72,8 +74,6 @@ class TrainingCurveHandler:
         self._last_val_epoch = -1
 
     def attach(self, engine: Any) -> None:
-        from ignite.engine import Events
-
         engine.add_event_handler(Events.EPOCH_COMPLETED, self._record)
         engine.add_event_handler(Events.COMPLETED, self._write)
 
@@ -99,6 +99,8 @@ class TrainingCurveHandler:
 
 def plot_history(history: list[dict[str, float]], path: str | Path) -> Path:
     """Draw loss terms (log scale) and validation errors against epoch into ``path`` (PNG)."""
+    # imported on use: the Agg backend must be chosen before pyplot is first imported, and a caller that never
+    # plots does not pay for matplotlib (about 0.3-0.5 s: python -c "import matplotlib.pyplot")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -155,8 +157,6 @@ class ResumeHandler:
 
     def latest(self) -> Path | None:
         """The newest epoch checkpoint, or ``None``."""
-        import re
-
         found = []
         for p in self.ckpt_dir.glob("*checkpoint*epoch=*.pt"):
             m = re.search(r"epoch=(\d+)", p.name)
@@ -171,8 +171,6 @@ class ResumeHandler:
         if path is None:
             logger.info("no checkpoint in %s: training starts from scratch", self.ckpt_dir)
             return
-        from monai.handlers import CheckpointLoader
-
         logger.info("resuming from %s", path)
         load_dict = {**self.load_dict, "trainer": engine}
         CheckpointLoader(str(path), load_dict, map_location=self.map_location).attach(engine)
@@ -198,7 +196,5 @@ class TrainingCheckpointSaver:
         self.n_saved = int(n_saved)
 
     def attach(self, engine: Any) -> None:
-        from monai.handlers import CheckpointSaver
-
         CheckpointSaver(self.save_dir, {**self.save_dict, "trainer": engine}, file_prefix="checkpoint",
                         save_interval=self.save_interval, n_saved=self.n_saved, epoch_level=True).attach(engine)

@@ -9,7 +9,7 @@ import torch
 from monai.handlers import IgniteMetricHandler
 from monai.metrics import CumulativeIterationMetric
 
-from monai_rigidreg.geometry import PARAM_NAMES, Grid, grid_points, params_to_matrix_torch
+from monai_rigidreg.geometry import PARAM_NAMES, Grid, grid_points, point_distances_torch, wrap_degrees
 
 __all__ = ["RigidErrorMetric", "RigidErrorHandler", "from_registration_output", "error_handlers"]
 
@@ -49,12 +49,9 @@ class RigidErrorMetric(CumulativeIterationMetric):
         p = y_pred.detach().double().reshape(-1, 6)
         t = y.detach().double().to(p.device).reshape(-1, 6)
         if self.quantity == "tre":
-            pts = self._points.to(p.device)
-            homo = torch.cat([pts, torch.ones_like(pts[:, :1])], 1)  # [N, 4]
-            diff = (params_to_matrix_torch(p) - params_to_matrix_torch(t)) @ homo.T  # [B, 4, N]
-            return diff[:, :3].norm(dim=1).mean(dim=1, keepdim=True)
+            return point_distances_torch(p, t, self._points).mean(dim=1, keepdim=True)
         d = p - t
-        d[:, 3:] = torch.remainder(d[:, 3:] + 180.0, 360.0) - 180.0
+        d[:, 3:] = wrap_degrees(d[:, 3:])
         d = d.abs()
         if self.quantity == "trans":
             return d[:, :3].mean(1, keepdim=True)

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from monai_rigidreg.errors import OutputExistsError
+from monai_rigidreg.io import check_output_dir
 
 __all__ = ["add_parser", "run"]
 
@@ -34,6 +35,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     from monai_rigidreg.evaluation.evaluate import evaluate_datalist
 
+    check_output_dir(args.output_dir, args.overwrite, allow_existing=True)  # a file, or under a file: refused
     if (args.output_dir / "report.md").exists() and not args.overwrite:
         raise OutputExistsError(args.output_dir / "report.md")
     out = evaluate_datalist(args.datalist, args.method, args.output_dir, bundle=args.bundle, device=args.device,

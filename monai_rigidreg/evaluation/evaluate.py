@@ -17,7 +17,9 @@ from typing import Any
 
 import numpy as np
 import SimpleITK as sitk
+from tqdm.auto import tqdm
 
+from monai_rigidreg.classical import elastix_available, register_elastix, register_sitk
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.evaluation.report import CaseResult, format_report, summarize, write_report
 from monai_rigidreg.geometry import (
@@ -29,6 +31,7 @@ from monai_rigidreg.geometry import (
     target_registration_error,
 )
 from monai_rigidreg.io import load_volume
+from monai_rigidreg.registration import RigidRegistrar
 
 __all__ = ["METHODS", "evaluate_datalist", "load_datalist", "body_points", "LoadedCase", "iter_cases"]
 
@@ -144,7 +147,7 @@ def evaluate_datalist(
         device: for the network.
         max_cases: evaluate only the first N cases.
         key: datalist key (default: ``test``, ``validation`` or ``training``, the first present).
-        registrar: a ready :class:`~monai_rigidreg.register.RigidRegistrar` (overrides ``bundle``).
+        registrar: a ready :class:`~monai_rigidreg.registration.RigidRegistrar` (overrides ``bundle``).
         progress: show a progress bar.
 
     Returns:
@@ -157,16 +160,10 @@ def evaluate_datalist(
     if max_cases is not None:
         items = items[: int(max_cases)]
     if any(m.startswith("network") for m in methods) and registrar is None:
-        from monai_rigidreg.register import RigidRegistrar
-
         registrar = RigidRegistrar.from_bundle(bundle, device=device)
     if "elastix" in methods:
-        from monai_rigidreg.classical import elastix_available
-
         if not elastix_available():
             raise InputError("method 'elastix' needs itk-elastix: pip install 'monai-rigidreg[elastix]'")
-
-    from tqdm.auto import tqdm
 
     cases: list[CaseResult] = []
     for case in tqdm(iter_cases(items), total=len(items), desc="evaluate", disable=not progress, unit="case"):
@@ -191,11 +188,7 @@ def _run_method(method: str, fixed: sitk.Image, moving: sitk.Image, fov: sitk.Im
                  "timings": {k: round(v, 4) for k, v in res.timings.items()}}
         return res.params, time.perf_counter() - t0, extra
     if method == "sitk":
-        from monai_rigidreg.classical import register_sitk
-
         res = register_sitk(fixed, moving, center=center, moving_mask=fov)
     else:
-        from monai_rigidreg.classical import register_elastix
-
         res = register_elastix(fixed, moving, center=center)  # elastix's default rigid map, as specified
     return res.params, time.perf_counter() - t0, {"stop": res.stop_condition}

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
+from monai_rigidreg.image_ops import masked_ncc
 from monai_rigidreg.losses.rigid_loss import (
     LossTerms,
     RigidRegistrationLoss,
     grid_gradient_penalty,
     image_gradient_difference,
     masked_mutual_information,
-    masked_ncc,
     masked_ssim,
     supervised_point_distance,
 )

@@ -14,11 +14,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from monai.losses import GlobalMutualInformationLoss, SSIMLoss
 from torch import nn
 
-from monai_rigidreg.geometry import Grid, grid_points, params_to_matrix_torch
+from monai_rigidreg.geometry import Grid, grid_points, params_to_matrix_torch, point_distances_torch
+from monai_rigidreg.image_ops import broadcast_mask, gaussian_kernel_1d, masked_ncc, separable_filter
 
 __all__ = [
     "RigidRegistrationLoss",
@@ -53,53 +53,6 @@ class LossTerms(NamedTuple):
         return {k: float(v.detach()) for k, v in self._asdict().items()}
 
 
-def _check_mask(mask: torch.Tensor | None, ref: torch.Tensor) -> torch.Tensor | None:
-    if mask is None:
-        return None
-    if mask.shape[0] != ref.shape[0] or mask.shape[2:] != ref.shape[2:] or mask.shape[1] not in (1, ref.shape[1]):
-        raise ValueError(f"mask {tuple(mask.shape)} does not match image {tuple(ref.shape)} (want [B, 1, x, y, z])")
-    return (mask > 0).to(ref.dtype).expand_as(ref)
-
-
-def masked_ncc(x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor | None = None, eps: float = 1e-8) -> torch.Tensor:
-    """Global normalized cross-correlation (paper Eq. 3, Pearson correlation) over the voxels of ``mask``.
-
-    Args:
-        x, y: ``[B, C, x, y, z]``.
-        mask: optional ``[B, 1, x, y, z]``; voxels where ``mask <= 0`` are ignored.
-
-    Returns:
-        ``[B]`` NCC in [-1, 1] (dimensionless), computed in float32 or wider.
-    """
-    dt = torch.promote_types(x.dtype, torch.float32)
-    x, y = x.to(dt), y.to(dt)
-    m = _check_mask(mask, x)
-    w = torch.ones_like(x) if m is None else m
-    n = w.flatten(1).sum(1).clamp_min(1.0)
-    mx = (w * x).flatten(1).sum(1) / n
-    my = (w * y).flatten(1).sum(1) / n
-    dx = (x - mx.view(-1, 1, 1, 1, 1)) * w
-    dy = (y - my.view(-1, 1, 1, 1, 1)) * w
-    num = (dx * dy).flatten(1).sum(1)
-    den = torch.sqrt((dx * dx).flatten(1).sum(1) * (dy * dy).flatten(1).sum(1) + eps)
-    return num / den
-
-
-def _gaussian_1d(win_size: int, sigma: float, ref: torch.Tensor) -> torch.Tensor:
-    dist = torch.arange(win_size, dtype=ref.dtype, device=ref.device) - (win_size - 1) / 2.0
-    g = torch.exp(-0.5 * (dist / sigma) ** 2)
-    return g / g.sum()
-
-
-def _blur_valid(img: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
-    """Separable Gaussian filter of ``[B, C, x, y, z]`` (``valid`` convolution, like MONAI's SSIM metric)."""
-    c = img.shape[1]
-    k = g.numel()
-    out = F.conv3d(img, g.view(1, 1, k, 1, 1).expand(c, 1, k, 1, 1), groups=c)
-    out = F.conv3d(out, g.view(1, 1, 1, k, 1).expand(c, 1, 1, k, 1), groups=c)
-    return F.conv3d(out, g.view(1, 1, 1, 1, k).expand(c, 1, 1, 1, k), groups=c)
-
-
 def masked_ssim(
     x: torch.Tensor,
     y: torch.Tensor,
@@ -126,16 +79,20 @@ def masked_ssim(
     """
     dt = torch.promote_types(x.dtype, torch.float32)
     x, y = x.to(dt), y.to(dt)
-    m = _check_mask(mask, x)
+    m = broadcast_mask(mask, x)
     assert m is not None
-    g = _gaussian_1d(win_size, sigma, x)
-    wsum = _blur_valid(m, g)
+    g = gaussian_kernel_1d(sigma, approx="sampled", normalize=True, size=win_size, dtype=dt, device=x.device)
+
+    def blur(img: torch.Tensor) -> torch.Tensor:  # ``valid`` windows, like MONAI's SSIM metric
+        return separable_filter(img, [g, g, g], padding="valid")
+
+    wsum = blur(m)
     safe = wsum.clamp_min(1e-6)
-    mu_x = _blur_valid(m * x, g) / safe
-    mu_y = _blur_valid(m * y, g) / safe
-    s_xx = _blur_valid(m * x * x, g) / safe - mu_x * mu_x
-    s_yy = _blur_valid(m * y * y, g) / safe - mu_y * mu_y
-    s_xy = _blur_valid(m * x * y, g) / safe - mu_x * mu_y
+    mu_x = blur(m * x) / safe
+    mu_y = blur(m * y) / safe
+    s_xx = blur(m * x * x) / safe - mu_x * mu_x
+    s_yy = blur(m * y * y) / safe - mu_y * mu_y
+    s_xy = blur(m * x * y) / safe - mu_x * mu_y
     c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
     ssim_map = ((2 * mu_x * mu_y + c1) * (2 * s_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (s_xx + s_yy + c2))
     h = win_size // 2
@@ -157,7 +114,7 @@ def masked_mutual_information(
     Returns:
         ``[B]`` MI (>= 0; larger is more similar).
     """
-    m = _check_mask(mask, x)
+    m = broadcast_mask(mask, x)
     assert m is not None
     wx, _ = parzen.parzen_windowing_gaussian(x)  # [B, N, bins]
     wy, _ = parzen.parzen_windowing_gaussian(y)
@@ -204,7 +161,7 @@ def image_gradient_difference(
     """
     dt = torch.promote_types(x.dtype, torch.float32)
     d = x.to(dt) - y.to(dt)
-    m = _check_mask(mask, d)
+    m = broadcast_mask(mask, d)
     sp = [float(s) for s in np.broadcast_to(np.asarray(spacing, dtype=np.float64), (3,))]
     total = torch.zeros(d.shape[0], dtype=dt, device=d.device)
     count = torch.zeros_like(total)
@@ -227,7 +184,8 @@ def supervised_point_distance(
     center: Any,
     weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Mean distance (mm) between points mapped by the predicted and by the true transform (a differentiable TRE).
+    """Mean distance (mm) between points mapped by the predicted and by the true transform (a differentiable TRE,
+    :func:`~monai_rigidreg.geometry.point_distances_torch` averaged with optional weights).
 
     Args:
         params_pred, params_true: ``[B, 6]`` (mm, degrees) about ``center``.
@@ -239,14 +197,7 @@ def supervised_point_distance(
     Returns:
         ``[B]`` mean ``|T_pred(x) - T_true(x)|`` in mm; exactly 0 (with zero gradient) when the transforms agree.
     """
-    dt = torch.promote_types(params_pred.dtype, torch.float32)
-    m_pred = params_to_matrix_torch(params_pred.to(dt), center)
-    m_true = params_to_matrix_torch(params_true.to(device=params_pred.device, dtype=dt), center)
-    diff = m_pred - m_true  # [B, 4, 4]; (T_pred - T_true)(x) = diff[:3, :3] x + diff[:3, 3]
-    pts = points.to(device=params_pred.device, dtype=dt)
-    d = pts @ diff[:, :3, :3].transpose(1, 2) + diff[:, None, :3, 3]  # [B, N, 3]
-    d2 = (d * d).sum(-1)
-    dist = d2 / torch.sqrt(d2.clamp_min(1e-12))  # = sqrt(d2), but 0 with a finite (zero) gradient at d2 = 0
+    dist = point_distances_torch(params_pred, params_true, points, center)  # [B, N]
     if weights is None:
         return dist.mean(1)
     w = weights.to(dist.dtype)

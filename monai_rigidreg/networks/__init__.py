@@ -1,9 +1,21 @@
-"""Networks of monai-rigidreg: the dual-encoder rigid regressor, the rigid spatial transformer, cascades."""
+"""Networks of monai-rigidreg: the learned regression, the weight-free Gauss-Newton stage, their composition, the
+rigid spatial transformer and cascades."""
 
 from __future__ import annotations
 
 from monai_rigidreg.networks.cascade import CascadeRegistration, cascade_register
+from monai_rigidreg.networks.gauss_newton import GaussNewtonStage
 from monai_rigidreg.networks.rigid_net import FUSIONS, DualEncoderRigidNet
 from monai_rigidreg.networks.transformer import RigidTransformer
+from monai_rigidreg.networks.two_stage import STAGE_KEYS, TwoStageRigidNet
 
-__all__ = ["DualEncoderRigidNet", "FUSIONS", "RigidTransformer", "cascade_register", "CascadeRegistration"]
+__all__ = [
+    "DualEncoderRigidNet",
+    "FUSIONS",
+    "GaussNewtonStage",
+    "TwoStageRigidNet",
+    "STAGE_KEYS",
+    "RigidTransformer",
+    "cascade_register",
+    "CascadeRegistration",
+]

@@ -2,22 +2,17 @@
 
 Modules: :mod:`.phantoms` (Shepp-Logan, asymmetric and random phantoms, real CTs), :mod:`.scanner`
 (geometries), :mod:`.projector` (forward/back projection), :mod:`.reconstruction` (FDK, FBP), :mod:`.physics`
-(noise, scatter, beam hardening, truncation), :mod:`.protocols` (motions), :mod:`.generator` (datasets),
-:mod:`.cli` (``monai-rigidreg simulate``).
+(noise, scatter, beam hardening, truncation), :mod:`.protocols` (motions), :mod:`.config` (configuration and
+presets), :mod:`.volumes` (one Sim-CT, one CBCT, one case), :mod:`.dataset` (datasets), :mod:`.pair` (one pair),
+:mod:`.cli` (``monai-rigidreg simulate``) and :mod:`.toy` (tiny analytic pairs for tests and benchmarks, not a
+simulator).
 """
 
 from __future__ import annotations
 
-from monai_rigidreg.simulation.generator import (
-    PRESETS,
-    SimulationConfig,
-    make_config,
-    save_volume_hu,
-    simulate_cbct,
-    simulate_dataset,
-    simulate_simct,
-)
-from monai_rigidreg.simulation.pair import simulate_pair  # noqa: E402  (after generator: it builds on it)
+from monai_rigidreg.simulation.config import PRESETS, SimulationConfig, make_config
+from monai_rigidreg.simulation.dataset import simulate_dataset
+from monai_rigidreg.simulation.pair import simulate_pair
 from monai_rigidreg.simulation.phantoms import (
     MU_WATER,
     PHANTOMS,
@@ -32,16 +27,11 @@ from monai_rigidreg.simulation.phantoms import (
     voxelize,
 )
 from monai_rigidreg.simulation.physics import CBCTPhysics, apply_cbct_physics, fov_mask
-from monai_rigidreg.simulation.projector import (
-    cone_backproject,
-    cone_forward,
-    fan_backproject,
-    fan_forward,
-    resolve_device,
-)
+from monai_rigidreg.simulation.projector import cone_backproject, cone_forward, fan_backproject, fan_forward
 from monai_rigidreg.simulation.protocols import PROTOCOLS, MotionCase, paper_cases, protocol_cases, random_cases
 from monai_rigidreg.simulation.reconstruction import FILTERS, fbp_fan, fdk, ramp_filter
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry, FanBeamGeometry
+from monai_rigidreg.simulation.volumes import save_volume_hu, simulate_case, simulate_cbct, simulate_simct
 
 __all__ = [
     "simulate_pair",
@@ -49,6 +39,7 @@ __all__ = [
     "SimulationConfig",
     "make_config",
     "save_volume_hu",
+    "simulate_case",
     "simulate_cbct",
     "simulate_dataset",
     "simulate_simct",
@@ -70,7 +61,6 @@ __all__ = [
     "cone_forward",
     "fan_backproject",
     "fan_forward",
-    "resolve_device",
     "PROTOCOLS",
     "MotionCase",
     "paper_cases",

@@ -70,7 +70,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Run the ``simulate`` subcommand; returns the exit status (0 ok, 2 bad input or existing output)."""
-    from monai_rigidreg.simulation.generator import simulate_dataset
+    from monai_rigidreg.simulation.dataset import simulate_dataset
 
     try:
         path = simulate_dataset(

@@ -19,9 +19,11 @@ import numpy as np
 import SimpleITK as sitk
 import torch
 
+from monai_rigidreg.device import resolve_device
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import Grid, rotation_matrix
-from monai_rigidreg.simulation.projector import grid_axes, resolve_device
+from monai_rigidreg.io import load_volume
+from monai_rigidreg.simulation.projector import grid_axes
 
 __all__ = [
     "MU_WATER",
@@ -266,7 +268,7 @@ def voxelize(
 def load_ct(path: str | Path) -> sitk.Image:
     """Read a CT (NIfTI/NRRD/MHA file or a DICOM series directory) as a float32 ``SimpleITK.Image`` in HU.
 
-    Uses :func:`monai_rigidreg.io.load_volume` when the package provides it.
+    Reads with :func:`monai_rigidreg.io.load_volume`.
 
     Raises:
         InputError: missing or unreadable file, not 3D, or non-finite values.
@@ -274,23 +276,7 @@ def load_ct(path: str | Path) -> sitk.Image:
     p = Path(path)
     if not p.exists():
         raise InputError("CT file or DICOM directory not found", p)
-    try:
-        from monai_rigidreg.io import load_volume  # the package's reader (DICOM series, checks)
-
-        img = load_volume(p)
-    except ImportError:  # pragma: no cover - io module absent
-        try:
-            if p.is_dir():
-                reader = sitk.ImageSeriesReader()
-                files = reader.GetGDCMSeriesFileNames(str(p))
-                if not files:
-                    raise InputError("no DICOM series in this directory", p)
-                reader.SetFileNames(files)
-                img = reader.Execute()
-            else:
-                img = sitk.ReadImage(str(p))
-        except RuntimeError as exc:
-            raise InputError(f"cannot read the image ({str(exc).strip().splitlines()[0]})", p) from exc
+    img = load_volume(p)  # the package's reader: DICOM series, corrupt files and NaN named as InputError
     if img.GetDimension() != 3 or img.GetNumberOfComponentsPerPixel() != 1:
         raise InputError(f"expected a 3D scalar CT, got a {img.GetDimension()}D image", p)
     img = sitk.Cast(img, sitk.sitkFloat32)

@@ -24,13 +24,13 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import torch
-import torch.nn.functional as F
 
 from monai_rigidreg.geometry import Grid
+from monai_rigidreg.image_ops import gaussian_kernel_1d, separable_filter
 from monai_rigidreg.simulation.projector import grid_axes
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry
 
-__all__ = ["CBCTPhysics", "apply_cbct_physics", "gaussian_blur_2d", "fov_mask"]
+__all__ = ["CBCTPhysics", "apply_cbct_physics", "fov_mask"]
 
 
 @dataclass(frozen=True)
@@ -85,24 +85,6 @@ class CBCTPhysics:
         return asdict(self)
 
 
-def gaussian_blur_2d(images: torch.Tensor, sigma_px: tuple[float, float]) -> torch.Tensor:
-    """Separable Gaussian blur of ``[N, H, W]`` images, ``sigma_px = (sigma_H, sigma_W)`` in pixels.
-
-    Edges are extended by replication (the detector signal continues smoothly).
-    """
-    out = images.unsqueeze(1)
-    for axis, sigma in enumerate(sigma_px):
-        if sigma <= 0:
-            continue
-        radius = int(math.ceil(3 * sigma))
-        x = torch.arange(-radius, radius + 1, dtype=images.dtype, device=images.device)
-        k = torch.exp(-0.5 * (x / sigma) ** 2)
-        k = (k / k.sum()).view(1, 1, -1, 1) if axis == 0 else (k / k.sum()).view(1, 1, 1, -1)
-        pad = (0, 0, radius, radius) if axis == 0 else (radius, radius, 0, 0)
-        out = F.conv2d(F.pad(out, pad, mode="replicate"), k)
-    return out[:, 0]
-
-
 def apply_cbct_physics(
     line_integrals: torch.Tensor,
     geometry: ConeBeamGeometry,
@@ -130,7 +112,14 @@ def apply_cbct_physics(
         total = primary
         if physics.scatter_to_primary > 0:
             du, dv = geometry.pixel_pitch  # type: ignore[misc]
-            blurred = gaussian_blur_2d(primary, (physics.scatter_sigma_mm / dv, physics.scatter_sigma_mm / du))
+            # separable sampled Gaussian (radius ceil(3 sigma) pixels, normalized), edges replicated: the detector
+            # signal continues smoothly
+            kernels = [
+                gaussian_kernel_1d(s, approx="sampled", normalize=True, size=2 * math.ceil(3 * s) + 1,
+                                   dtype=primary.dtype, device=primary.device)
+                for s in (physics.scatter_sigma_mm / dv, physics.scatter_sigma_mm / du)
+            ]
+            blurred = separable_filter(primary, kernels, padding="replicate")
             nv = p.shape[1]
             cv, cu = (
                 slice(nv // 2 - nv // 16, nv // 2 + nv // 16 + 1),

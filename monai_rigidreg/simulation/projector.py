@@ -21,20 +21,11 @@ import math
 import torch
 import torch.nn.functional as F
 
+from monai_rigidreg.device import resolve_device
 from monai_rigidreg.geometry import Grid
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry, FanBeamGeometry
 
-__all__ = ["resolve_device", "grid_axes", "cone_forward", "fan_forward", "cone_backproject", "fan_backproject"]
-
-
-def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
-    """``"auto"``/``None`` -> CUDA when available else CPU; anything else -> ``torch.device(device)``."""
-    if device is None or str(device) == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device 'cuda' was asked for but CUDA is not available")
-    return dev
+__all__ = ["grid_axes", "cone_forward", "fan_forward", "cone_backproject", "fan_backproject"]
 
 
 def _check_grid(grid: Grid) -> None:
@@ -69,6 +60,12 @@ def _rot90_symmetric(grid: Grid) -> bool:
     return (
         nx == ny and abs(sx - sy) < 1e-9 and abs(ox + (nx - 1) * sx / 2) < 1e-6 and abs(oy + (ny - 1) * sy / 2) < 1e-6
     )
+
+
+def _quarter_symmetric(geometry: ConeBeamGeometry, grid: Grid) -> bool:
+    """Whether views ``k, k + m, k + 2m, k + 3m`` of the scan see ``grid`` alike up to a 90 degree rotation of it: a
+    full scan of ``4 m`` views and a grid symmetric under 90 degree rotations about the axis."""
+    return geometry.num_views % 4 == 0 and abs(geometry.arc - 360.0) < 1e-9 and _rot90_symmetric(grid)
 
 
 def _rot90(vol: torch.Tensor) -> torch.Tensor:
@@ -109,7 +106,7 @@ def cone_forward(
     (ox, oy, oz), (sx, sy, sz) = grid.origin, grid.spacing
     vol = volume.to(device=dev, dtype=torch.float32)
     nviews = geometry.num_views
-    sym = use_symmetry and nviews % 4 == 0 and abs(geometry.arc - 360.0) < 1e-9 and _rot90_symmetric(grid)
+    sym = use_symmetry and _quarter_symmetric(geometry, grid)
     if sym:
         vols = [vol]
         for _ in range(3):
@@ -281,7 +278,7 @@ def cone_backproject(
     su, sv = 2.0 / (du * (nu - 1)), 2.0 / (dv * (nv - 1))  # mm on the detector -> grid_sample units
     zsv = zs * sv
     proj = projections.to(device=dev, dtype=torch.float32)
-    sym = use_symmetry and nviews % 4 == 0 and abs(geometry.arc - 360.0) < 1e-9 and _rot90_symmetric(grid)
+    sym = use_symmetry and _quarter_symmetric(geometry, grid)
     nch = 4 if sym else 1
     # q[k, r] = projection k + r * (nviews / nch): channel r of group k
     q = proj.view(nch, nviews // nch, nv, nu).transpose(0, 1).contiguous(memory_format=torch.channels_last)

@@ -19,8 +19,9 @@ import math
 
 import torch
 
+from monai_rigidreg.device import resolve_device
 from monai_rigidreg.geometry import Grid
-from monai_rigidreg.simulation.projector import cone_backproject, fan_backproject, resolve_device
+from monai_rigidreg.simulation.projector import cone_backproject, fan_backproject
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry, FanBeamGeometry
 
 __all__ = ["FILTERS", "ramp_filter_response", "ramp_filter", "fdk", "fbp_fan"]

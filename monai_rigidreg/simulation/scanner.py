@@ -38,13 +38,29 @@ def _check_common(sod: float, sdd: float, num_views: int, arc: float) -> None:
         raise ValueError(f"arc must be in (0, 360] degrees, got {arc}")
 
 
-def _angles(num_views: int, arc: float, start_angle: float, device: torch.device | str | None) -> torch.Tensor:
-    step = math.radians(arc) / num_views
-    return math.radians(start_angle) + step * torch.arange(num_views, dtype=torch.float64, device=device)
+class _CircularOrbit:
+    """What both scanners share: the source on a circle of radius ``sod`` about the ``z`` axis, the detector at
+    ``sdd`` from it, ``num_views`` views equally spaced over ``arc`` degrees from ``start_angle``."""
+
+    sod: float
+    sdd: float
+    num_views: int
+    arc: float
+    start_angle: float
+
+    @property
+    def magnification(self) -> float:
+        """Magnification at the isocentre, ``sdd / sod``."""
+        return self.sdd / self.sod
+
+    def angles(self, device: torch.device | str | None = None) -> torch.Tensor:
+        """Gantry angles ``[num_views]`` in radians (float64)."""
+        step = math.radians(self.arc) / self.num_views
+        return math.radians(self.start_angle) + step * torch.arange(self.num_views, dtype=torch.float64, device=device)
 
 
 @dataclass(frozen=True)
-class ConeBeamGeometry:
+class ConeBeamGeometry(_CircularOrbit):
     """Circular-orbit cone-beam CT with a flat-panel detector (an on-board imager).
 
     Args:
@@ -76,18 +92,9 @@ class ConeBeamGeometry:
             raise ValueError(f"pixel_pitch must be > 0 mm, got {self.pixel_pitch}")
 
     @property
-    def magnification(self) -> float:
-        """Magnification at the isocentre, ``sdd / sod``."""
-        return self.sdd / self.sod
-
-    @property
     def is_complete(self) -> bool:
         """Whether the detector shape and pitch are set (after :meth:`fitted`)."""
         return self.detector_shape is not None and self.pixel_pitch is not None
-
-    def angles(self, device: torch.device | str | None = None) -> torch.Tensor:
-        """Gantry angles ``[num_views]`` in radians (float64)."""
-        return _angles(self.num_views, self.arc, self.start_angle, device)
 
     def fitted(self, radius_mm: float, half_height_mm: float, iso_pixel_mm: float, margin: float = 1.05):
         """A copy with the unset detector fields chosen so that the detector covers the object.
@@ -132,7 +139,7 @@ class ConeBeamGeometry:
 
 
 @dataclass(frozen=True)
-class FanBeamGeometry:
+class FanBeamGeometry(_CircularOrbit):
     """Fan-beam CT (the planning CT), simulated slice by slice: one detector row per reconstructed slice.
 
     Args:
@@ -163,18 +170,9 @@ class FanBeamGeometry:
             raise ValueError(f"pixel_pitch must be > 0 mm, got {self.pixel_pitch}")
 
     @property
-    def magnification(self) -> float:
-        """Magnification at the isocentre, ``sdd / sod``."""
-        return self.sdd / self.sod
-
-    @property
     def is_complete(self) -> bool:
         """Whether the detector size and pitch are set."""
         return self.num_detectors is not None and self.pixel_pitch is not None
-
-    def angles(self, device: torch.device | str | None = None) -> torch.Tensor:
-        """Gantry angles ``[num_views]`` in radians (float64)."""
-        return _angles(self.num_views, self.arc, self.start_angle, device)
 
     def fitted(self, radius_mm: float, iso_pixel_mm: float, margin: float = 1.05) -> FanBeamGeometry:
         """A copy whose unset detector fields cover a cylinder of ``radius_mm`` with ``iso_pixel_mm`` pixels."""

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 from monai_rigidreg.transforms.cbct import CBCT_KEY, CBCT_RECORD_KEYS, RandCBCTDegradation, RandCBCTDegradationd
 from monai_rigidreg.transforms.grid import (
-    DEFAULT_NETWORK_SIZE,
-    DEFAULT_NETWORK_SPACING,
     NormalizeHU,
     NormalizeHUd,
     ResampleToNetworkGrid,
@@ -25,8 +23,6 @@ from monai_rigidreg.transforms.rigid import (
 __all__ = [
     "CBCT_KEY",
     "CBCT_RECORD_KEYS",
-    "DEFAULT_NETWORK_SIZE",
-    "DEFAULT_NETWORK_SPACING",
     "RIGID_KEY",
     "NormalizeHU",
     "NormalizeHUd",

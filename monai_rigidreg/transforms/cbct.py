@@ -35,11 +35,10 @@ import torch
 import torch.nn.functional as F
 from monai.config import KeysCollection
 from monai.data.meta_obj import get_track_meta
-from monai.networks.layers import separable_filtering
-from monai.networks.layers.convutils import gaussian_1d
 from monai.transforms import MapTransform, RandomizableTransform
 from monai.utils import convert_to_dst_type, convert_to_tensor
 
+from monai_rigidreg.image_ops import gaussian_smooth
 from monai_rigidreg.transforms.utils import ensure_interval, grid_of
 
 __all__ = ["RandCBCTDegradation", "RandCBCTDegradationd", "CBCT_KEY", "CBCT_RECORD_KEYS"]
@@ -80,17 +79,13 @@ angles, ring radii, shading knots, noise), so the record reproduces the output e
 
 
 def _gaussian_blur(x: torch.Tensor, sigma_vox: Sequence[float]) -> torch.Tensor:
-    """Separable Gaussian blur of ``[C, x, y, z]``; ``sigma_vox`` per spatial axis (voxels, < 0.05 skipped)."""
-    kernels = []
-    for s in sigma_vox:
-        if s < 0.05:
-            kernels.append(torch.ones(1, dtype=x.dtype, device=x.device))
-        else:
-            k = gaussian_1d(torch.tensor(float(s)), truncated=3.0, approx="erf", normalize=True)
-            kernels.append(k.to(dtype=x.dtype, device=x.device))
-    if all(k.numel() == 1 for k in kernels):
-        return x
-    return separable_filtering(x.unsqueeze(0), kernels, mode="replicate")[0]
+    """Separable Gaussian blur of ``[C, x, y, z]``; ``sigma_vox`` per spatial axis (voxels, < 0.05 skipped).
+
+    MONAI's ``erf`` kernel truncated at 3 sigma, renormalized, replicate padding
+    (:func:`~monai_rigidreg.image_ops.gaussian_smooth`).
+    """
+    sigmas = [float(s) if s >= 0.05 else 0.0 for s in sigma_vox]
+    return gaussian_smooth(x, sigmas, truncated=3.0, padding="replicate", normalize=True)
 
 
 class RandCBCTDegradation(RandomizableTransform):

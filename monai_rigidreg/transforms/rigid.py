@@ -1,6 +1,6 @@
 """Random 6-DoF rigid motion of images in physical space (``RandRigid6DoF`` / ``RandRigid6DoFd``).
 
-Semantics (see ``shared/conventions.md``): *moving an image by a motion* ``M`` means that an object point at
+Semantics (see ``docs/conventions.md``): *moving an image by a motion* ``M`` means that an object point at
 ``p`` (LPS mm) appears at ``M(p)`` in the output, ``out(y) = in(M^-1(y))``; the output stays on the input grid
 (same shape, same affine), only the content moves. If the input was a fixed image ``F`` and the output is used as
 the moving image, the registration transform (fixed -> moving) is ``T = M`` and
@@ -45,6 +45,9 @@ __all__ = [
 
 RIGID_KEY = "rigid_params"
 """Default key of the ground truth written by :class:`RandRigid6DoFd`."""
+
+_CONSTRUCTOR: Any = object()
+"""Default of an override whose ``None`` means something: use the constructor's value."""
 
 
 def apply_rigid_motion(
@@ -282,14 +285,30 @@ class RandRigid6DoF(RandomizableTransform, InvertibleTransform):
             sample_rigid_params(self.R, self.ranges, self.axis_prob, self.step) if self._do_transform else np.zeros(6)
         )
 
+    def record_motion(self, center: Sequence[float]) -> np.ndarray:
+        """The motion of the current draw about ``center`` (LPS mm), kept in ``last_params``, ``last_center`` and
+        ``last_matrix``; returns ``last_matrix`` (4x4)."""
+        self.last_params = self._params.copy()
+        self.last_center = np.asarray(center, dtype=np.float64)
+        self.last_matrix = params_to_matrix(self._params, center)
+        return self.last_matrix
+
     def __call__(
-        self, img: Any, randomize: bool = True, mode: str | None = None, padding_mode: str | None = None
+        self,
+        img: Any,
+        randomize: bool = True,
+        mode: str | None = None,
+        padding_mode: str | None = None,
+        center: Sequence[float] | None = None,
+        padding_value: PaddingValue | object = _CONSTRUCTOR,
     ) -> torch.Tensor:
         """
         Args:
             img: channel-first image ``[C, x, y, z]`` (``MetaTensor``, tensor or array).
             randomize: draw new parameters (else reuse the last draw).
             mode, padding_mode: override the constructor's.
+            center: rotation centre (LPS mm) instead of the constructor's (or the image centre).
+            padding_value: override the constructor's (``None`` is a value here: use ``padding_mode``).
 
         Returns:
             the moved image: same type, shape, affine, dtype and device.
@@ -297,18 +316,15 @@ class RandRigid6DoF(RandomizableTransform, InvertibleTransform):
         img = convert_to_tensor(img, track_meta=get_track_meta())
         if randomize:
             self.randomize()
-        grid = grid_of(img)
-        c = grid.center() if self.center is None else self.center
-        self.last_params = self._params.copy()
-        self.last_center = np.asarray(c, dtype=np.float64)
-        self.last_matrix = params_to_matrix(self._params, c)
+        if center is None:
+            center = grid_of(img).center() if self.center is None else self.center
         return _move_and_push(
             self,
             img,
-            self.last_matrix,
+            self.record_motion(center),
             mode or self.mode,
             padding_mode or self.padding_mode,
-            self.padding_value,
+            self.padding_value if padding_value is _CONSTRUCTOR else padding_value,
             do_transform=self._do_transform,
         )
 
@@ -348,8 +364,6 @@ class RandRigid6DoFd(RandomizableTransform, MapTransform, InvertibleTransform):
 
     Args:
         keys: keys of the images to move.
-        prob, translate_range, rotate_range, axis_prob, step: as :class:`RandRigid6DoF`.
-        center: rotation centre (LPS mm).
         center_key: key of the fixed image whose physical centre is the rotation centre.
         mode: interpolation for ``keys``, one or one per key.
         padding_mode: ``grid_sample`` padding for ``keys`` when ``padding_value`` is ``None``.
@@ -360,17 +374,14 @@ class RandRigid6DoFd(RandomizableTransform, MapTransform, InvertibleTransform):
         update_prior: overwrite those top-level keys with the new total.
         gt_dtype: dtype of the recorded tensors.
         allow_missing_keys: don't raise if a key is missing.
+        kwargs: the motion, as :class:`RandRigid6DoF`: ``prob``, ``translate_range``, ``rotate_range``,
+            ``axis_prob``, ``step`` and ``center`` (rotation centre, LPS mm).
     """
 
     def __init__(
         self,
         keys: KeysCollection,
-        prob: float = 1.0,
-        translate_range: Any = 15.0,
-        rotate_range: Any = 30.0,
-        axis_prob: float | Sequence[float] = 1.0,
-        step: float | Sequence[float] | None = None,
-        center: Sequence[float] | None = None,
+        *,
         center_key: Hashable | None = None,
         mode: str | Sequence[str] = "bilinear",
         padding_mode: str | Sequence[str] = "zeros",
@@ -381,13 +392,14 @@ class RandRigid6DoFd(RandomizableTransform, MapTransform, InvertibleTransform):
         update_prior: bool = True,
         gt_dtype: torch.dtype = torch.float32,
         allow_missing_keys: bool = False,
+        **kwargs: Any,
     ) -> None:
         self.image_keys = ensure_tuple(keys)
         self.mask_keys = ensure_tuple(mask_keys) if mask_keys is not None else ()
         MapTransform.__init__(self, self.image_keys + self.mask_keys, allow_missing_keys)
-        RandomizableTransform.__init__(self, prob)
-        self.ranges, self.axis_prob, self.step = _param_config(translate_range, rotate_range, axis_prob, step)
-        self.center = None if center is None else as_vector(center, 3)
+        self.rigid = RandRigid6DoF(**kwargs)  # draws the motion and moves each key
+        RandomizableTransform.__init__(self, self.rigid.prob)
+        self.center = self.rigid.center
         self.center_key = center_key
         n_img, n_mask = len(self.image_keys), len(self.mask_keys)
         pv = (
@@ -406,16 +418,19 @@ class RandRigid6DoFd(RandomizableTransform, MapTransform, InvertibleTransform):
             raise ValueError(f"prior_keys must name (params, matrix, center), got {prior_keys!r}")
         self.update_prior = update_prior
         self.gt_dtype = gt_dtype
-        self._params = np.zeros(6)
-        self.last_params = np.zeros(6)
-        self.last_center = np.zeros(3)
-        self.last_matrix = np.eye(4)
+
+    def set_random_state(self, seed: int | None = None, state: np.random.RandomState | None = None) -> RandRigid6DoFd:
+        super().set_random_state(seed, state)
+        self.rigid.set_random_state(seed, state)
+        return self
 
     def randomize(self, data: Any = None) -> None:
-        super().randomize(None)
-        self._params = (
-            sample_rigid_params(self.R, self.ranges, self.axis_prob, self.step) if self._do_transform else np.zeros(6)
-        )
+        self.rigid.randomize(None)
+        self._do_transform = self.rigid._do_transform
+
+    last_params = property(lambda self: self.rigid.last_params, doc="``[6]`` last motion alone (mm / degrees).")
+    last_center = property(lambda self: self.rigid.last_center, doc="``[3]`` centre of the last motion (LPS mm).")
+    last_matrix = property(lambda self: self.rigid.last_matrix, doc="4x4 last motion alone (LPS mm).")
 
     # -- ground truth ------------------------------------------------------------------------------------------
     def _prior(self, d: Mapping) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -459,11 +474,9 @@ class RandRigid6DoFd(RandomizableTransform, MapTransform, InvertibleTransform):
         self.randomize()
         t0, c0 = self._prior(d)
         c = self._center(d, c0)
-        motion = params_to_matrix(self._params, c)
-        self.last_params, self.last_center, self.last_matrix = self._params.copy(), np.asarray(c, float), motion
+        motion = self.rigid.record_motion(c)
         for key, mode, pmode, pval in self.key_iterator(d, self.mode, self.padding_mode, self.padding_value):
-            img = convert_to_tensor(d[key], track_meta=get_track_meta())
-            d[key] = _move_and_push(self, img, motion, mode, pmode, pval, do_transform=self._do_transform)
+            d[key] = self.rigid(d[key], False, mode, pmode, center=c, padding_value=pval)
         total = motion if t0 is None else compose_matrices(motion, t0)
         params = matrix_to_params(total, c)
         d[self.output_key] = {
@@ -481,6 +494,6 @@ class RandRigid6DoFd(RandomizableTransform, MapTransform, InvertibleTransform):
         """Undo the motion on every moved key (the recorded ground truth is left as is)."""
         d = dict(data)
         for key, pval in self.key_iterator(d, self.padding_value):
-            transform = self.pop_transform(d[key])
+            transform = self.rigid.pop_transform(d[key])
             d[key] = _undo(d[key], transform, pval)
         return d

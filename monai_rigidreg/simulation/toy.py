@@ -1,4 +1,5 @@
-"""Tiny synthetic registration pairs for tests, smoke training and the network benchmark (not a simulator).
+"""Tiny synthetic registration pairs for tests, smoke training and the network benchmark (not a simulator:
+no projection or reconstruction; :mod:`monai_rigidreg.simulation` has the CT/CBCT simulator next to it).
 
 A phantom is an analytic function of LPS position: a soft ellipsoidal "body" plus random Gaussian blobs, values
 in [0, 1]. The fixed volume samples it on the grid, ``F(x) = P(x)``; the moving volume samples it displaced,

@@ -1,10 +1,11 @@
-"""Differentiable Gauss-Newton rigid alignment of two feature maps (inverse-compositional Lucas-Kanade).
+"""The weight-free fine stage: differentiable Gauss-Newton rigid alignment of two feature maps.
 
-Used as the fine stage of :class:`~monai_rigidreg.networks.DualEncoderRigidNet`: the regression head gives a
-coarse estimate, a few Gauss-Newton steps on fixed, contrast-robust feature maps (:func:`alignment_features`) make
-it precise. Regression alone cannot reach sub-voxel accuracy cheaply (it has to learn the mm scale of every
-displacement from data); a Gauss-Newton step computes the displacement from image gradients, so the learned part
-only has to bring the start into the basin.
+:class:`GaussNewtonStage` refines a start estimate (the learned regression's, see
+:class:`~monai_rigidreg.networks.TwoStageRigidNet`) by coarse-to-fine inverse-compositional Lucas-Kanade steps on
+fixed, contrast-robust feature maps (:func:`alignment_features`). It has no trainable weights. A regression alone
+cannot reach sub-voxel accuracy cheaply (it has to learn the mm scale of every displacement from data); a
+Gauss-Newton step computes the displacement from image gradients, so the learned part only has to bring the start
+into the basin.
 
 Conventions are those of :mod:`monai_rigidreg.geometry`: ``T`` maps fixed points to moving points (LPS mm), the
 estimate is a ``[B, 4, 4]`` matrix, parameters are ``(tx, ty, tz, rx, ry, rz)`` mm / degrees about the grid
@@ -21,20 +22,24 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
 
-from monai_rigidreg.geometry import Grid, grid_points, params_to_matrix_torch
+from monai_rigidreg.geometry import Grid, grid_points, matrix_to_params_torch, params_to_matrix_torch
+from monai_rigidreg.image_ops import erode, gradient_magnitude, local_mean, pyramid
 from monai_rigidreg.warp import warp_volume
 
 __all__ = [
+    "GaussNewtonStage",
+    "JACOBIANS",
     "alignment_features",
-    "erode",
     "fixed_jacobian",
     "gauss_newton_align",
-    "gradient_magnitude",
     "parameter_flow",
     "polynomial_basis",
-    "pyramid",
 ]
+
+JACOBIANS: tuple[str, ...] = ("fixed", "moving", "symmetric")
+"""Where the Gauss-Newton steps take their image gradients from (see :func:`gauss_newton_align`)."""
 
 
 def parameter_flow(grid: Grid, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
@@ -141,8 +146,8 @@ def gauss_newton_align(
     if moving.shape != fixed.shape or moving.ndim != 5:
         raise ValueError(f"moving {tuple(moving.shape)} and fixed {tuple(fixed.shape)} must be equal [B,C,x,y,z]")
     # the Jacobian is treated as a constant in backpropagation (as the inverse-compositional scheme treats it in
-    # the forward pass); gradients reach both feature maps through the residual. Measured: 1.5-2x faster steps.
-    if jacobian not in ("fixed", "moving", "symmetric"):
+    # the forward pass); gradients reach both feature maps through the residual
+    if jacobian not in JACOBIANS:
         raise ValueError(f"jacobian must be 'fixed', 'moving' or 'symmetric', got {jacobian!r}")
     jac_fixed = None if jacobian == "moving" else fixed_jacobian(fixed.detach(), grid).flatten(2)  # [B, 6, C*N]
     jf = jac_fixed  # (products in the feature dtype, the 6x6 solve in float64)
@@ -239,47 +244,6 @@ def _polynomial_basis(size: tuple[int, ...], degree: int, dtype: torch.dtype, de
     return torch.stack(terms).to(dtype)
 
 
-def erode(mask: torch.Tensor, radius: Sequence[int]) -> torch.Tensor:
-    """Erosion of ``[B, C, x, y, z]`` masks (values in [0, 1]) by a box of half-widths ``radius`` voxels per axis.
-
-    Separable 1-D min-filters; voxels outside the volume do not count (the border itself is not eroded).
-    """
-    for axis, r in enumerate(radius):
-        if r > 0:
-            kernel = [1, 1, 1]
-            kernel[axis] = 2 * int(r) + 1
-            mask = -F.max_pool3d(-mask, tuple(kernel), 1, tuple(k // 2 for k in kernel))
-    return mask
-
-
-def gradient_magnitude(volume: torch.Tensor, eps: float = 0.0) -> torch.Tensor:
-    """Magnitude of the central-difference gradient over the last three axes (per voxel step).
-
-    ``sqrt(sum_i g_i^2 + eps)``: with ``eps > 0`` it is differentiable at flat regions too.
-    """
-    grads = torch.gradient(volume, dim=(-3, -2, -1))
-    return torch.sqrt(sum(g * g for g in grads) + eps)
-
-
-def _local_mean(volume: torch.Tensor, mask: torch.Tensor, sigma_vox: Sequence[float]) -> torch.Tensor:
-    """Gaussian-weighted mean of ``volume`` over ``mask`` (normalized convolution), sigma in voxels.
-
-    A smooth quantity, so it is computed on a grid pooled by up to 4 (sigma >= 2 voxels there) and upsampled
-    trilinearly: about 5x cheaper than the full-resolution filter at sigma 8 voxels.
-    """
-    from monai.networks.layers import GaussianFilter
-
-    factor = max(1, min(4, int(min(sigma_vox) // 2)))
-    num, den = volume * mask, mask
-    if factor > 1:
-        num, den = F.avg_pool3d(num, factor, ceil_mode=True), F.avg_pool3d(den, factor, ceil_mode=True)
-    blur = GaussianFilter(3, [s / factor for s in sigma_vox]).to(volume.device)
-    mean = blur(num) / blur(den).clamp_min(1e-3)
-    if factor > 1:
-        mean = F.interpolate(mean, size=volume.shape[2:], mode="trilinear", align_corners=False)
-    return mean
-
-
 def alignment_features(
     volume: torch.Tensor,
     spacing: Sequence[float],
@@ -311,17 +275,137 @@ def alignment_features(
     out = [volume]
     if highpass_weight != 0:
         mask = (volume > support_threshold).to(volume.dtype)
-        local_mean = _local_mean(volume, mask, [float(highpass_sigma_mm) / float(s) for s in spacing])
-        out.append(highpass_weight * (volume - local_mean) * mask)
+        mean = local_mean(volume, mask, [float(highpass_sigma_mm) / float(s) for s in spacing])
+        out.append(highpass_weight * (volume - mean) * mask)
     if gradient_weight != 0:
         out.append(gradient_weight * gradient_magnitude(volume, eps=1e-6))
     return torch.cat(out, 1)
 
 
-def pyramid(volume: torch.Tensor, grid: Grid, factor: int) -> tuple[torch.Tensor, Grid]:
-    """Average-pool ``volume`` by ``factor`` and return it with its grid (same centre)."""
-    if factor == 1:
-        return volume, grid
-    pooled = F.avg_pool3d(volume, factor)
-    g = Grid.centered(pooled.shape[2:], [s * factor for s in grid.spacing], grid.center())
-    return pooled, g
+class GaussNewtonStage(nn.Module):
+    """The fine stage: coarse-to-fine Gauss-Newton alignment of contrast-robust features, from two starts.
+
+    ``forward(moving, fixed, start)`` refines ``start`` (the regression's estimate): the feature maps of both
+    volumes (:func:`alignment_features`: intensity and local contrast) are aligned on an average-pooled pyramid of
+    the network grid (``levels``, coarse to fine, ``iterations`` steps each) by :func:`gauss_newton_align`,
+    restricted to the moving image's support (voxels above ``support_threshold``, eroded by
+    ``support_erosion_mm``: the CBCT field of view minus air), so a truncated CBCT is not pulled towards the CT's
+    anatomy outside its field of view. The first level runs from two starts, ``start`` and the identity; per case
+    the better fit (lower residual, keeping at least half the identity's overlap) goes on, so the regression can
+    only widen the capture range, never spoil a case the Gauss-Newton steps capture on their own.
+
+    No trainable weights. Differentiable with respect to the images; the start is detached (measured: letting the
+    loss on the final estimate reach the regression through these steps made CPU training diverge within two
+    epochs, the regression saturating at its tanh bounds), so the regression learns from its own supervised term.
+    Fixed rather than learned features: learned channels trained through the (detached-Jacobian) steps degraded
+    the validation TRE from 2.6 mm to 15 mm within one CPU epoch, while these reach about 0.4 mm
+    (``benchmarks/bench_alignment_features.py``).
+
+    Args:
+        grid_spacing: network-grid spacing in mm (the bundle's ``network_spacing``; the steps work in physical
+            units, so this must be the spacing the volumes are on).
+        iterations: Gauss-Newton steps per pyramid level (empty or all zero: the start is returned).
+        levels: pooling factor of each level, coarse to fine (same length as ``iterations``).
+        highpass_sigma_mm, highpass_weight, gradient_weight: the feature maps, see :func:`alignment_features`
+            (weights 0: align intensities alone).
+        support_erosion_mm: erosion of the moving support before it weights the residuals (mm, at least a voxel).
+            More than a voxel: near the CBCT field-of-view edge the local contrast of the CT (which has data
+            beyond it) and of the CBCT differ (``bench_alignment_features.py``: 8 mm takes the validation TRE
+            from 0.63 mm with one voxel to 0.42 mm).
+        bias_degree: degree of the smooth intensity bias per feature channel estimated jointly with the pose and
+            discarded (-1: none; see :func:`gauss_newton_align`). Used from the second level on: on the coarsest
+            level, where large motions are captured, a smooth field can stand in for a shift of broad structures
+            (``benchmarks/bench_capture_range.py`` with the terms on every level captured fewer large motions).
+        jacobian: ``"fixed"`` (inverse compositional, the default), ``"moving"`` or ``"symmetric"``; one for all
+            levels or one per level.
+        robust_scale: optional Geman-McClure scale of the residuals (None: plain least squares).
+        support_threshold: normalized intensity above which a moving voxel counts as data.
+
+    Shapes:
+        ``forward``: ``moving, fixed`` ``[B, C, x, y, z]`` on the network grid (intensities ~[0, 1]), ``start``
+        ``[B, 6]`` (mm, degrees about the grid centre) -> ``(params [B, 6] in the dtype of start,
+        from_start [B] bool: True where the refined ``start`` beat the identity start)``.
+    """
+
+    def __init__(
+        self,
+        grid_spacing: Sequence[float],
+        iterations: Sequence[int] = (12, 8, 4),
+        levels: Sequence[int] = (4, 2, 1),
+        highpass_sigma_mm: float = 16.0,
+        highpass_weight: float = 3.0,
+        gradient_weight: float = 0.0,
+        support_erosion_mm: float = 8.0,
+        bias_degree: int = -1,
+        jacobian: str | Sequence[str] = "fixed",
+        robust_scale: float | None = None,
+        support_threshold: float = 1e-3,
+    ) -> None:
+        super().__init__()
+        self.iterations = tuple(int(i) for i in iterations)
+        self.levels = tuple(int(v) for v in levels)
+        if len(self.iterations) != len(self.levels):
+            raise ValueError(f"iterations {self.iterations} and levels {self.levels} differ in length")
+        self.jacobian = jacobian if isinstance(jacobian, str) else tuple(jacobian)
+        jacobians = [self.jacobian] if isinstance(self.jacobian, str) else list(self.jacobian)
+        if not isinstance(self.jacobian, str) and len(self.jacobian) != len(self.levels):
+            raise ValueError(f"jacobian {self.jacobian} needs one entry per level {self.levels}")
+        if any(j not in JACOBIANS for j in jacobians):
+            raise ValueError(f"jacobian must be one of {JACOBIANS} (or one per level), got {self.jacobian!r}")
+        self.grid_spacing = tuple(float(v) for v in grid_spacing)
+        if len(self.grid_spacing) != 3 or min(self.grid_spacing) <= 0:
+            raise ValueError(f"grid_spacing must be three positive mm values, got {grid_spacing}")
+        self.highpass_sigma_mm = float(highpass_sigma_mm)
+        self.highpass_weight = float(highpass_weight)
+        self.gradient_weight = float(gradient_weight)
+        self.support_erosion_mm = float(support_erosion_mm)
+        self.bias_degree = int(bias_degree)
+        self.robust_scale = robust_scale
+        self.support_threshold = float(support_threshold)
+
+    def features(self, volumes: torch.Tensor) -> torch.Tensor:
+        """The maps the stage aligns, ``[N, C, x, y, z]`` -> ``[N, C * k, x, y, z]`` (:func:`alignment_features`)."""
+        return alignment_features(volumes, self.grid_spacing, self.support_threshold, self.highpass_sigma_mm,
+                                  self.highpass_weight, self.gradient_weight)
+
+    def forward(self, moving: torch.Tensor, fixed: torch.Tensor, start: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        if moving.shape != fixed.shape or moving.ndim != 5:
+            raise ValueError(f"moving {tuple(moving.shape)} and fixed {tuple(fixed.shape)} must be equal [B,C,x,y,z]")
+        b = moving.shape[0]
+        feat = self.features(torch.cat([moving, fixed], dim=0))
+        feat_m, feat_f = feat[:b], feat[b:]
+        support = (moving > self.support_threshold).to(moving.dtype)
+        support = erode(support, [max(1, round(self.support_erosion_mm / s)) for s in self.grid_spacing])
+        grid = Grid.centered(tuple(moving.shape[2:]), self.grid_spacing, (0.0, 0.0, 0.0))
+        starts = torch.cat([params_to_matrix_torch(start.detach().to(torch.float64), grid.center()),
+                            torch.eye(4, dtype=torch.float64, device=start.device).expand(b, 4, 4)], 0)
+        total = starts[:b]
+        from_start = torch.ones(b, dtype=torch.bool, device=start.device)
+        first = True
+        jacobians = [self.jacobian] * len(self.levels) if isinstance(self.jacobian, str) else list(self.jacobian)
+        for level, iters, jacobian in zip(self.levels, self.iterations, jacobians):
+            if iters <= 0:
+                continue
+            fm, g = pyramid(feat_m, grid, level)
+            ff, _ = pyramid(feat_f, grid, level)
+            sup = support if level == 1 else (F.avg_pool3d(support, level) > 0.999).to(support.dtype)
+            if first:
+                both, res, cover = gauss_newton_align(
+                    fm.repeat(2, 1, 1, 1, 1), ff.repeat(2, 1, 1, 1, 1), g, starts, iterations=iters,
+                    moving_support=sup.repeat(2, 1, 1, 1, 1), robust_scale=self.robust_scale, return_residual=True,
+                    jacobian=jacobian)
+                # a start that leaves little overlap can show a low mean residual: it must keep at least half the
+                # overlap of the identity start to be preferred
+                from_start = (res[:b] <= res[b:]) & (cover[:b] >= 0.5 * cover[b:])
+                total = torch.where(from_start.view(b, 1, 1), both[:b], both[b:])
+                first = False
+                continue
+            total = gauss_newton_align(fm, ff, g, total, iterations=iters, moving_support=sup,
+                                       robust_scale=self.robust_scale, bias_degree=self.bias_degree,
+                                       jacobian=jacobian)
+        return matrix_to_params_torch(total, grid.center()).to(start.dtype), from_start
+
+    def extra_repr(self) -> str:
+        return (f"grid_spacing={self.grid_spacing}, iterations={self.iterations}, levels={self.levels}, "
+                f"bias_degree={self.bias_degree}, jacobian={self.jacobian!r}")

@@ -1,0 +1,83 @@
+"""The shipped registration network: the learned regression followed by the weight-free Gauss-Newton stage."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+from monai_rigidreg.networks.gauss_newton import GaussNewtonStage
+from monai_rigidreg.networks.rigid_net import DualEncoderRigidNet
+
+__all__ = ["TwoStageRigidNet", "STAGE_KEYS"]
+
+STAGE_KEYS: tuple[str, ...] = ("params", "coarse", "from_coarse")
+"""Keys of :meth:`TwoStageRigidNet.forward_stages`: the final estimate, the regression's estimate, and per case
+whether the fine stage went on from the regression's estimate (True) or from the identity (False)."""
+
+
+class TwoStageRigidNet(nn.Module):
+    """``regression`` (a :class:`~monai_rigidreg.networks.DualEncoderRigidNet`) -> ``fine_stage``
+    (a :class:`~monai_rigidreg.networks.GaussNewtonStage`, or ``None`` for the regression alone).
+
+    The regression gives a coarse estimate in one feed-forward pass; the fine stage refines it on the same network
+    grid (no trainable weights). ``forward`` keeps the MONAI bundle form and returns the final ``[B, 6]`` estimate,
+    so ``verify_net_in_out``, engines and ``ckpt_export`` see one tensor; the training criterion needs the coarse
+    estimate as well and gets it from :meth:`forward_stages` (or ``forward(image, stages=True)``, which is what a
+    ``DistributedDataParallel`` wrapper can call), never from state left on the module.
+
+    Checkpoints of bundle 0.2.x, saved when the regression and the fine stage were one module, hold the
+    regression's keys without the ``regression.`` prefix; :meth:`load_state_dict` accepts them as they are.
+
+    Args:
+        regression: the learned stage; outputs ``(tx, ty, tz, rx, ry, rz)`` mm / degrees about the grid centre.
+        fine_stage: the refinement, or ``None``.
+        fine_stage_enabled: run the fine stage (``False`` measures the regression alone with the same weights).
+
+    Shapes:
+        ``forward``: ``[B, 2 * C, x, y, z]`` (moving channels first, then fixed) -> ``[B, 6]``.
+        ``forward_pair``: ``moving, fixed`` ``[B, C, x, y, z]`` each -> ``[B, 6]``.
+        ``forward_stages``: the same inputs -> ``{"params": [B, 6], "coarse": [B, 6], "from_coarse": [B] bool}``.
+    """
+
+    def __init__(self, regression: DualEncoderRigidNet, fine_stage: GaussNewtonStage | None = None,
+                 fine_stage_enabled: bool = True) -> None:
+        super().__init__()
+        self.regression = regression
+        self.fine_stage = fine_stage
+        self.fine_stage_enabled = bool(fine_stage_enabled)
+        self.in_channels = int(regression.in_channels)
+        self._register_load_state_dict_pre_hook(_accept_flat_regression_keys, with_module=True)
+
+    def forward_stages(self, moving: torch.Tensor, fixed: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Both estimates (see :data:`STAGE_KEYS`); ``moving``, ``fixed``: ``[B, C, x, y, z]`` on the network grid."""
+        coarse = self.regression.forward_pair(moving, fixed)
+        if self.fine_stage is None or not self.fine_stage_enabled:
+            return {"params": coarse, "coarse": coarse,
+                    "from_coarse": torch.ones(coarse.shape[0], dtype=torch.bool, device=coarse.device)}
+        params, from_coarse = self.fine_stage(moving, fixed, coarse)
+        return {"params": params, "coarse": coarse, "from_coarse": from_coarse}
+
+    def forward_pair(self, moving: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
+        """The final estimate ``[B, 6]`` (mm, degrees, fixed -> moving about the grid centre)."""
+        return self.forward_stages(moving, fixed)["params"]
+
+    def forward(self, image: torch.Tensor, stages: bool = False) -> Any:
+        """``[B, 2 * C, x, y, z]`` -> ``[B, 6]`` (or the :meth:`forward_stages` dict with ``stages=True``)."""
+        if image.shape[1] != 2 * self.in_channels:
+            raise ValueError(f"expected {2 * self.in_channels} channels (moving, fixed), got {image.shape[1]}")
+        out = self.forward_stages(image[:, : self.in_channels], image[:, self.in_channels :])
+        return out if stages else out["params"]
+
+
+def _accept_flat_regression_keys(module: nn.Module, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
+    """Load-time hook: ``encoder.*``, ``fusion.*``, ``mlp.*``, ``head.*``, ``bounds`` (bundle 0.2.x) ->
+    ``regression.*``; keys that already carry a sub-module prefix are left alone."""
+    own = {name.split(".", 1)[0] for name in module.regression.state_dict()}
+    for key in list(state_dict):
+        if not key.startswith(prefix):
+            continue
+        rest = key[len(prefix):]
+        if rest.split(".", 1)[0] in own:
+            state_dict[f"{prefix}regression.{rest}"] = state_dict.pop(key)

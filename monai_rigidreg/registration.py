@@ -1,0 +1,386 @@
+"""Register a CBCT (moving) to a planning CT (fixed): network estimate, optional classical refinement, confidence.
+
+Data flow (``docs/architecture.md``): the volumes are read once (:mod:`monai_rigidreg.io`), both are resampled
+once onto the network grid placed on the CBCT (:meth:`~monai_rigidreg.network_grid.NetworkGridSpec.on_moving`,
+the same resampling and normalization as training), the network returns six parameters about that grid's centre,
+and the result is re-expressed about the fixed (CT) image centre, the project's convention
+(``docs/conventions.md``); its ``Euler3DTransform`` resamples the original, full-resolution CBCT onto the CT grid.
+Writing the output files is :mod:`monai_rigidreg.outputs`; the confidence check is :mod:`monai_rigidreg.confidence`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import SimpleITK as sitk
+import torch
+from monai.data import MetaTensor
+from torch import nn
+
+from monai_rigidreg.bundle import load_bundle_network
+from monai_rigidreg.classical import register_sitk
+from monai_rigidreg.confidence import (
+    CONFIDENCE_THRESHOLD,
+    LOCAL_GAIN_LIMIT,
+    assess_estimate,
+    cylindrical_fov_mask,
+)
+from monai_rigidreg.device import resolve_device
+from monai_rigidreg.errors import InputError
+from monai_rigidreg.geometry import (
+    PARAM_NAMES,
+    Grid,
+    grid_points,
+    params_to_matrix,
+    params_to_sitk,
+    recenter_params,
+    target_registration_error,
+)
+from monai_rigidreg.io import as_image, grids_overlap, resample
+from monai_rigidreg.network_grid import NetworkGridSpec
+from monai_rigidreg.networks import cascade_register
+from monai_rigidreg.transforms.grid import NormalizeHU, ResampleToNetworkGrid, resample_to_grid
+
+__all__ = ["RegistrationResult", "RigidRegistrar", "register"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class RegistrationResult:
+    """Result of :func:`register`.
+
+    Attributes:
+        params: ``(tx, ty, tz, rx, ry, rz)`` mm / degrees, fixed -> moving, about ``center``.
+        center: rotation centre (LPS mm): the fixed image centre.
+        registered: the moving image resampled onto the fixed grid (``None`` if not asked for).
+        timings: seconds per stage (``preprocess``, ``network``, ``refine``, ``confidence``, ``resample``,
+            ``total``).
+        confidence: score in [0, 1] (see :func:`confidence_score`); ``flagged`` when below the threshold.
+        flagged: likely failure: check the QC figure.
+        details: network-only parameters, refinement change, similarity before/after, swap consistency.
+    """
+
+    params: np.ndarray
+    center: np.ndarray
+    registered: sitk.Image | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+    confidence: float = float("nan")
+    flagged: bool = False
+    details: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def transform(self) -> sitk.Euler3DTransform:
+        """The ``SimpleITK.Euler3DTransform`` (fixed -> moving): ``sitk.Resample(moving, fixed, transform)``."""
+        return params_to_sitk(self.params, self.center)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous matrix of :attr:`transform` (LPS mm)."""
+        return params_to_matrix(self.params, self.center)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (``result.json``)."""
+        return {
+            "params": {n: float(v) for n, v in zip(PARAM_NAMES, self.params)},
+            "units": {"translation": "mm", "rotation": "degrees"},
+            "convention": "ITK LPS; maps fixed (CT) points to moving (CBCT) points; Euler3DTransform, "
+            "rotation R = Rz @ Rx @ Ry about center",
+            "center": [float(v) for v in self.center],
+            "matrix": [[float(v) for v in row] for row in self.matrix],
+            "runtime_s": {k: round(float(v), 4) for k, v in self.timings.items()},
+            "confidence": float(self.confidence),
+            "flagged": bool(self.flagged),
+            "details": _jsonable(self.details),
+        }
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    return x
+
+
+
+class RigidRegistrar:
+    """A loaded network plus its preprocessing settings, reusable across many registrations.
+
+    Args:
+        network: module mapping ``[B, 2, x, y, z]`` (moving, fixed; intensities normalized) to ``[B, 6]``, e.g. the
+            shipped :class:`~monai_rigidreg.networks.TwoStageRigidNet` (regression + fine stage).
+        network_size: network grid size in voxels (default: the shipped bundle's, see ``network_spacing``).
+        network_spacing: network grid spacing in mm. Both default to the shipped bundle's
+            (:meth:`~monai_rigidreg.network_grid.NetworkGridSpec.from_bundle`): a checkpoint is tied to its grid, so
+            give the sizes of the bundle the network came from. A fine stage built for another spacing is refused.
+        cascade_steps: network applications (1 = single pass, the bundle's setting; each further step estimates a
+            correction on the CBCT warped by the running estimate).
+        device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"``.
+        hu_range: HU window mapped to [0, 1] before the network (as in training).
+
+    Build it once and reuse it: ``registrar = RigidRegistrar.from_bundle()`` then
+    ``monai_rigidreg.register(ct, cbct, model=registrar)`` (or ``registrar(ct, cbct)``).
+    """
+
+    def __init__(
+        self,
+        network: nn.Module,
+        network_size: Sequence[int] | None = None,
+        network_spacing: Sequence[float] | None = None,
+        cascade_steps: int = 1,
+        device: str | torch.device | None = "auto",
+        hu_range: tuple[float, float] = (-1000.0, 2000.0),
+    ) -> None:
+        if network_size is None or network_spacing is None:
+            shipped = NetworkGridSpec.from_bundle()
+            network_size = shipped.size if network_size is None else network_size
+            network_spacing = shipped.spacing if network_spacing is None else network_spacing
+        self.grid_spec = NetworkGridSpec(network_size, network_spacing)
+        fine = getattr(network, "fine_stage", None)
+        if fine is not None and tuple(fine.grid_spacing) != self.grid_spec.spacing:
+            raise InputError(f"the network's fine stage works at {tuple(fine.grid_spacing)} mm but the network grid "
+                             f"is {self.grid_spec.spacing} mm: give the network_spacing of its bundle")
+        self.device = resolve_device(device)
+        self.network = network.to(self.device).eval()
+        self.cascade_steps = _check_steps(cascade_steps)
+        self.hu_range = hu_range
+        self._resampler = ResampleToNetworkGrid(self.network_size, self.network_spacing, padding_value=hu_range[0])
+        self._normalize = NormalizeHU(a_min=hu_range[0], a_max=hu_range[1])
+
+    @property
+    def network_size(self) -> tuple[int, int, int]:
+        """Network grid size (voxels)."""
+        return self.grid_spec.size
+
+    @property
+    def network_spacing(self) -> tuple[float, float, float]:
+        """Network grid spacing (mm)."""
+        return self.grid_spec.spacing
+
+    @classmethod
+    def from_bundle(
+        cls, bundle: str | Path | None = None, device: str | torch.device | None = "auto", **overrides: Any
+    ) -> RigidRegistrar:
+        """Load the composed network (regression + fine stage) and its settings from a MONAI bundle, once.
+
+        Args:
+            bundle: bundle directory (default: the shipped ``cbct_ct_rigid``).
+            device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"``.
+            overrides: constructor arguments that replace the bundle's settings (e.g. ``cascade_steps=2``).
+        """
+        net, settings = load_bundle_network(bundle, device=resolve_device(device))
+        settings.update(overrides)
+        return cls(net, device=device, **settings)
+
+    # -- stages ------------------------------------------------------------------------------------------------
+    def network_grid(self, fixed: sitk.Image, moving: sitk.Image | None = None) -> Grid:
+        """The inference placement of the network grid: centred on the CBCT (moving) centre
+        (:meth:`~monai_rigidreg.network_grid.NetworkGridSpec.on_moving`), or on the fixed image without a CBCT.
+
+        Estimates on this grid are about its centre; :meth:`__call__` re-expresses them about the fixed image centre.
+        """
+        return self.grid_spec.on_moving(moving) if moving is not None else self.grid_spec.on_fixed(fixed)
+
+    def preprocess(self, image: sitk.Image, grid: Grid) -> torch.Tensor:
+        """``[1, x, y, z]`` normalized plain tensor of ``image`` on the network grid (the training preprocessing:
+        :class:`~monai_rigidreg.transforms.ResampleToNetworkGrid` then :class:`~monai_rigidreg.transforms.NormalizeHU`).
+        """
+        out = self._normalize(self._on_grid(image, grid, "bilinear", self.hu_range[0]))
+        return (out.as_tensor() if isinstance(out, MetaTensor) else out).float()
+
+    def _on_grid(self, image: sitk.Image, grid: Grid, mode: str, padding_value: float) -> torch.Tensor:
+        """``[1, x, y, z]`` float32 plain tensor of ``image`` resampled onto ``grid`` (no normalization).
+
+        The ``[z, y, x]`` array is viewed as ``[x, y, z]`` without a copy, so for a CT much larger than the grid only
+        the part the grid covers is transposed, and plain tensors skip ``MetaTensor`` bookkeeping in the network
+        (``benchmarks/bench_inference_speed.py``: both volumes in 0.04 s instead of 0.20 s through
+        ``sitk_to_metatensor`` and the MONAI transforms; the forward pass 0.105 s instead of 0.138 s).
+        """
+        if image.GetPixelID() != sitk.sitkFloat32:
+            image = sitk.Cast(image, sitk.sitkFloat32)
+        raw = torch.from_numpy(sitk.GetArrayFromImage(image)).permute(2, 1, 0)[None]
+        return resample_to_grid(raw, Grid.from_sitk(image), grid, mode, "zeros", padding_value,
+                                antialias=self._resampler.antialias)
+
+    @torch.no_grad()
+    def estimate(self, moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, steps: int | None = None
+                 ) -> np.ndarray:
+        """Network (+ cascade) estimate ``[6]`` (numpy, mm/deg about the grid centre) from preprocessed
+        ``[1, x, y, z]`` tensors on ``grid``."""
+        k = self.cascade_steps if steps is None else _check_steps(steps)
+        m = moving_t[None].to(self.device)
+        f = fixed_t[None].to(self.device)
+        params = cascade_register(self.network, m, f, grid, steps=k)
+        return params[0].double().cpu().numpy()
+
+    def assess(
+        self, moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, params: np.ndarray, fov: torch.Tensor,
+        swap: bool = True,
+    ) -> dict[str, float]:
+        """Failure signals of ``params`` (mm/deg about the grid centre):
+        :func:`~monai_rigidreg.confidence.assess_estimate` with this registrar's network as the swapped-input
+        estimator (``swap=False``: without that check)."""
+        estimate = (lambda m, f: self.estimate(m, f, grid)) if swap else None
+        return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate)
+
+    def __call__(
+        self,
+        fixed: sitk.Image | str | Path,
+        moving: sitk.Image | str | Path,
+        refine: bool = False,
+        cascade_steps: int | None = None,
+        resample_moving: bool = True,
+        moving_fov: sitk.Image | None = None,
+        assess: bool = True,
+    ) -> RegistrationResult:
+        """Register ``moving`` (CBCT) to ``fixed`` (CT); see :func:`register`."""
+        t_start = time.perf_counter()
+        timings: dict[str, float] = {}
+        fixed_img = as_image(fixed, "fixed")
+        moving_img = as_image(moving, "moving")
+        timings["load"] = time.perf_counter() - t_start
+        if not grids_overlap(Grid.from_sitk(fixed_img), Grid.from_sitk(moving_img)):
+            raise InputError(
+                "the CT (fixed) and CBCT (moving) do not overlap in physical space: check that both are in the "
+                "same patient coordinate system (origins and directions)"
+            )
+        # the CBCT field of view is only needed by the refinement and the confidence signals
+        fov_img = None
+        if refine or assess:
+            fov_img = cylindrical_fov_mask(moving_img) if moving_fov is None else moving_fov
+
+        t = time.perf_counter()
+        grid = self.network_grid(fixed_img, moving_img)
+        fixed_t = self.preprocess(fixed_img, grid)
+        moving_t = self.preprocess(moving_img, grid)
+        timings["preprocess"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        net_params = self.estimate(moving_t, fixed_t, grid, cascade_steps)
+        timings["network"] = time.perf_counter() - t
+        grid_center = grid.center()  # params and net_params are about it until re-expressed at the end
+        params = net_params.copy()
+        # network_params and the refinement's change are filled in at the end, about the fixed image centre
+        details: dict[str, Any] = {"network_params": {},
+                                   "cascade_steps": self.cascade_steps if cascade_steps is None else cascade_steps,
+                                   "device": str(self.device)}
+
+        fov_t = None
+        if refine or assess:
+            fov_t = self._on_grid(fov_img, grid, "nearest", 0.0)[0]
+        if refine:
+            def refine_from(start_params: np.ndarray) -> Any:
+                return register_sitk(fixed_img, moving_img, initial_params=start_params, center=grid_center,
+                                     moving_mask=fov_img, shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0))
+
+            t = time.perf_counter()
+            res, start = refine_from(net_params), "network"
+            # safeguard: a network estimate that looks wrong can drag the optimizer into a wrong basin; then the
+            # optimizer also starts from the identity and the lower (better) Mattes MI value wins
+            pre = self.assess(moving_t, fixed_t, grid, net_params, fov_t, swap=False)
+            if pre["local_gain"] > LOCAL_GAIN_LIMIT:
+                alt = refine_from(np.zeros(6))
+                if alt.metric < res.metric:
+                    res, start = alt, "identity"
+            params = res.params
+            timings["refine"] = time.perf_counter() - t
+            details["refine"] = {
+                "start": start,
+                "change": {},
+                "change_tre_mm": float(target_registration_error(params, net_params, grid_points(grid, 4),
+                                                                 center=grid_center)),
+                "metric": res.metric,
+                "stop_condition": res.stop_condition,
+            }
+
+        confidence, flagged = float("nan"), False
+        if assess:
+            t = time.perf_counter()
+            signals = self.assess(moving_t, fixed_t, grid, params, fov_t)
+            timings["confidence"] = time.perf_counter() - t
+            confidence = signals.pop("confidence")
+            flagged = confidence < CONFIDENCE_THRESHOLD
+            details["signals"] = signals
+            if flagged:
+                logger.warning("registration flagged as a likely failure (confidence %.2f): check the QC figure",
+                               confidence)
+
+        registered = None
+        if resample_moving:
+            t = time.perf_counter()
+            registered = resample(moving_img, fixed_img, params_to_sitk(params, grid_center))
+            timings["resample"] = time.perf_counter() - t
+        # report about the fixed image centre (the project's convention); the network grid may be centred elsewhere
+        fixed_center = Grid.from_sitk(fixed_img).center()
+        params = recenter_params(params, grid_center, fixed_center)
+        net_fixed = recenter_params(net_params, grid_center, fixed_center)
+        details["network_params"] = {n: float(v) for n, v in zip(PARAM_NAMES, net_fixed)}
+        if "refine" in details:
+            details["refine"]["change"] = {n: float(v) for n, v in zip(PARAM_NAMES, params - net_fixed)}
+        timings["total"] = time.perf_counter() - t_start
+        return RegistrationResult(params, fixed_center, registered, timings, confidence, flagged, details)
+
+
+_DEFAULT_REGISTRARS: dict[tuple[str, str], RigidRegistrar] = {}
+
+
+def register(
+    fixed: sitk.Image | str | Path,
+    moving: sitk.Image | str | Path,
+    *,
+    model: nn.Module | RigidRegistrar | None = None,
+    bundle: str | Path | None = None,
+    device: str | torch.device | None = "auto",
+    cascade_steps: int | None = None,
+    refine: bool = False,
+    resample_moving: bool = True,
+    moving_fov: sitk.Image | None = None,
+) -> RegistrationResult:
+    """Rigidly register a CBCT (``moving``) to a planning CT (``fixed``).
+
+    Args:
+        fixed: planning CT: path (NIfTI, MetaImage, NRRD, DICOM directory) or ``SimpleITK.Image`` (HU).
+        moving: CBCT, likewise; any grid, spacing, origin, direction and field of view overlapping the CT.
+        model: a :class:`RigidRegistrar` built once (:meth:`RigidRegistrar.from_bundle`), or a bare network (on the
+            shipped bundle's network grid), or ``None`` for the shipped (or ``bundle``'s) network, loaded once per
+            bundle and device and kept for later calls.
+        bundle: MONAI bundle directory to load the network from (default: the shipped ``cbct_ct_rigid``).
+        device: ``"auto"`` (CUDA if available), ``"cpu"``, ``"cuda"``...
+        cascade_steps: network applications (default: the bundle's setting).
+        refine: polish the network estimate with SimpleITK Mattes-MI (Euler3D, masked to the CBCT FOV).
+        resample_moving: also return the CBCT resampled onto the CT grid.
+        moving_fov: mask of the CBCT field of view on the CBCT grid (default: inscribed cylinder).
+
+    Returns:
+        :class:`RegistrationResult` with ``params`` (mm/deg, fixed -> moving, about the fixed image centre),
+        ``transform`` (``Euler3DTransform``), ``registered``, ``timings`` and ``confidence``.
+    """
+    if isinstance(model, RigidRegistrar):
+        registrar = model
+    elif isinstance(model, nn.Module):
+        registrar = RigidRegistrar(model, device=device)
+    else:
+        key = (str(bundle), str(resolve_device(device)))
+        if key not in _DEFAULT_REGISTRARS:
+            _DEFAULT_REGISTRARS[key] = RigidRegistrar.from_bundle(bundle, device=device)
+        registrar = _DEFAULT_REGISTRARS[key]
+    return registrar(fixed, moving, refine=refine, cascade_steps=cascade_steps, resample_moving=resample_moving,
+                     moving_fov=moving_fov)
+
+
+def _check_steps(steps: Any) -> int:
+    """``steps`` as an int >= 1, else :class:`~monai_rigidreg.errors.InputError` naming the value."""
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or int(steps) < 1:
+        raise InputError(f"cascade_steps must be a whole number >= 1, got {steps!r}")
+    return int(steps)
