@@ -16,7 +16,8 @@ from torch import nn
 
 from monai_rigidreg.errors import InputError
 
-__all__ = ["DEFAULT_BUNDLE_NAME", "default_bundle_path", "load_bundle_network", "bundle_settings"]
+__all__ = ["DEFAULT_BUNDLE_NAME", "default_bundle_path", "load_bundle_network", "bundle_settings",
+           "refuse_package_folders"]
 
 logger = logging.getLogger(__name__)
 
@@ -96,3 +97,20 @@ def load_bundle_network(
     except RuntimeError as exc:
         raise InputError(f"weights do not fit the bundle's network_def ({str(exc).splitlines()[0]})", w) from exc
     return net.to(device).eval(), _settings(parser)
+
+
+def refuse_package_folders(*folders: str | Path) -> None:
+    """Refuse output folders inside the installed package (its sources or the shipped bundle, which in an editable
+    install is the checkout's ``bundles/``): training there would replace the shipped weights.
+
+    Called by ``monai-rigidreg train`` and by the bundle's ``train.json`` (``initialize``) before anything is written.
+
+    Raises:
+        InputError: naming the first such folder.
+    """
+    roots = [Path(__file__).resolve().parent, default_bundle_path().resolve()]
+    for folder in folders:
+        p = Path(folder).resolve()
+        if any(p == r or r in p.parents for r in roots):
+            raise InputError("this output folder is inside the installed monai-rigidreg package: training must not "
+                             "replace the shipped bundle or its weights; choose a folder of your own", p)

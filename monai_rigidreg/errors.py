@@ -1,10 +1,15 @@
-"""Exceptions raised for bad user input, with messages that name the file and the problem."""
+"""Exceptions raised for bad user input, with messages that name the file and the problem, and the interruption
+that a SIGTERM becomes (so that the cleanup of an ``except BaseException`` / ``finally`` runs, as for Ctrl-C)."""
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["RigidRegError", "InputError", "OutputExistsError"]
+__all__ = ["RigidRegError", "InputError", "OutputExistsError", "Terminated", "sigterm_raises"]
 
 
 class RigidRegError(Exception):
@@ -30,3 +35,37 @@ class OutputExistsError(RigidRegError, FileExistsError):
     def __init__(self, path: str | Path, hint: str = "pass overwrite=True (--overwrite on the command line)") -> None:
         self.path = Path(path)
         super().__init__(f"{self.path}: already exists; refusing to overwrite it ({hint})")
+
+
+class Terminated(KeyboardInterrupt):
+    """Raised in the main thread when the process receives SIGTERM inside :func:`sigterm_raises`.
+
+    A ``KeyboardInterrupt``, so that every clean-up written for Ctrl-C (temporary folders, half-written files)
+    also runs when a scheduler or ``kill`` stops the process; the command line exits with 143 (128 + SIGTERM).
+    """
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated(f"terminated by signal {signum}")
+
+
+@contextlib.contextmanager
+def sigterm_raises(only_if_default: bool = False) -> Iterator[None]:
+    """Within the block, SIGTERM raises :class:`Terminated` instead of killing the process outright.
+
+    Does nothing outside the main thread (Python delivers signals there only). With ``only_if_default`` the
+    handler is installed only where SIGTERM still has its default action (library code: an application's own
+    handler is left alone). The previous handler is restored on exit.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGTERM)
+    if only_if_default and previous is not signal.SIG_DFL:  # None: a handler not set from Python, also kept
+        yield
+        return
+    signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)

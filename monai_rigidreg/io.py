@@ -34,6 +34,9 @@ __all__ = [
     "metatensor_to_sitk",
     "check_output_path",
     "check_output_dir",
+    "check_distinct_inputs",
+    "describe_dicom_series",
+    "select_dicom_series",
     "grids_overlap",
     "as_image",
 ]
@@ -110,17 +113,78 @@ def list_dicom_series(directory: str | Path) -> dict[str, list[str]]:
     return {uid: list(reader.GetGDCMSeriesFileNames(str(d), uid)) for uid in uids}
 
 
+def select_dicom_series(directory: str | Path, series_uid: str | None = None,
+                        series: dict[str, list[str]] | None = None) -> str:
+    """The UID of the series :func:`load_volume` reads from a DICOM directory: ``series_uid`` if given (and
+    present), else the series with the most files.
+
+    Raises:
+        InputError: no image series in the directory, or no series with ``series_uid``.
+    """
+    d = Path(directory)
+    series = list_dicom_series(d) if series is None else series
+    if not series:
+        raise InputError("directory holds no DICOM image series", d)
+    if series_uid is None:
+        return max(series, key=lambda uid: len(series[uid]))
+    if series_uid not in series:
+        raise InputError(f"no DICOM series with UID {series_uid!r}; found {sorted(series)}", d)
+    return series_uid
+
+
+def describe_dicom_series(directory: str | Path) -> list[dict[str, Any]]:
+    """One line of facts per image series of a DICOM directory, largest first: ``uid``, ``modality``,
+    ``description`` (Series Description), ``slices`` (number of files), read from each series' first file header."""
+    rows = []
+    for uid, files in list_dicom_series(directory).items():
+        reader = sitk.ImageFileReader()
+        reader.SetFileName(files[0])
+        info = {"uid": uid, "modality": "", "description": "", "slices": len(files)}
+        try:
+            reader.ReadImageInformation()
+            for key, tag in (("modality", "0008|0060"), ("description", "0008|103e")):
+                if reader.HasMetaDataKey(tag):
+                    info[key] = reader.GetMetaData(tag).strip()
+        except RuntimeError:  # an unreadable header: the UID and the count still identify the series
+            pass
+        rows.append(info)
+    return sorted(rows, key=lambda r: -r["slices"])
+
+
+def check_distinct_inputs(fixed: str | Path, moving: str | Path, fixed_series_uid: str | None = None,
+                          moving_series_uid: str | None = None) -> None:
+    """Refuse to register an image to itself: the same file, or the same DICOM series (a folder holding both the
+    CT and the CBCT, where both sides would otherwise pick the largest series).
+
+    Raises:
+        InputError: listing the folder's series (UID, modality, slices, description) and how to choose.
+    """
+    f, m = Path(fixed), Path(moving)
+    if not (f.exists() and m.exists()):
+        return  # the reader names the missing path
+    if f.is_file() and m.is_file():
+        if f.samefile(m):
+            raise InputError("--fixed and --moving are the same file: give the planning CT and the CBCT", f)
+        return
+    if not (f.is_dir() and m.is_dir()):
+        return
+    uid_f, uid_m = select_dicom_series(f, fixed_series_uid), select_dicom_series(m, moving_series_uid)
+    if uid_f != uid_m:
+        return
+    listing = "; ".join(f"{r['uid']} ({r['modality'] or '?'}, {r['slices']} slices, "
+                        f"{r['description'] or 'no description'})" for r in describe_dicom_series(f))
+    raise InputError(f"the CT (fixed) and the CBCT (moving) resolve to the same DICOM series {uid_f}: the image "
+                     f"would be registered to itself. Series in {f}: {listing}. Choose them with "
+                     "--fixed-series-uid and --moving-series-uid (fixed_series_uid= / moving_series_uid= in "
+                     "Python)", m)
+
+
 def _read_dicom_series(directory: Path, series_uid: str | None) -> sitk.Image:
     series = list_dicom_series(directory)
-    if not series:
-        raise InputError("directory holds no DICOM image series", directory)
-    if series_uid is None:
-        series_uid = max(series, key=lambda uid: len(series[uid]))
-        if len(series) > 1:
-            logger.info("%s: %d DICOM series, using the largest (%s)", directory, len(series), series_uid)
-    elif series_uid not in series:
-        raise InputError(f"no DICOM series with UID {series_uid!r}; found {sorted(series)}", directory)
-    files = series[series_uid]
+    chosen = select_dicom_series(directory, series_uid, series)
+    if series_uid is None and len(series) > 1:
+        logger.info("%s: %d DICOM series, using the largest (%s)", directory, len(series), chosen)
+    series_uid, files = chosen, series[chosen]
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames(files)
     reader.MetaDataDictionaryArrayUpdateOn()

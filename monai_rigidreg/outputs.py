@@ -16,7 +16,14 @@ import SimpleITK as sitk
 
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import PARAM_NAMES
-from monai_rigidreg.io import check_output_dir, load_volume, resample, save_volume, write_transform
+from monai_rigidreg.io import (
+    check_distinct_inputs,
+    check_output_dir,
+    load_volume,
+    resample,
+    save_volume,
+    write_transform,
+)
 from monai_rigidreg.qc import qc_figure
 from monai_rigidreg.registration import RegistrationResult, RigidRegistrar
 
@@ -97,6 +104,7 @@ def register_files(
     if not fixed or not moving:
         raise InputError("both 'fixed' and 'moving' must be given (e.g. --fixed CT.nii.gz --moving CBCT.nii.gz)")
     check_output_dir(output_dir, overwrite)
+    check_distinct_inputs(fixed, moving, fixed_series_uid, moving_series_uid)
     fixed_img = load_volume(fixed, series_uid=fixed_series_uid)
     moving_img = load_volume(moving, series_uid=moving_series_uid)
     result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps)

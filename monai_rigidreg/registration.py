@@ -42,7 +42,7 @@ from monai_rigidreg.geometry import (
     recenter_params,
     target_registration_error,
 )
-from monai_rigidreg.io import as_image, grids_overlap, resample
+from monai_rigidreg.io import as_image, check_distinct_inputs, grids_overlap, resample
 from monai_rigidreg.network_grid import NetworkGridSpec
 from monai_rigidreg.networks import cascade_register
 from monai_rigidreg.transforms.grid import NormalizeHU, ResampleToNetworkGrid, resample_to_grid
@@ -365,7 +365,12 @@ def register(
     Returns:
         :class:`RegistrationResult` with ``params`` (mm/deg, fixed -> moving, about the fixed image centre),
         ``transform`` (``Euler3DTransform``), ``registered``, ``timings`` and ``confidence``.
+
+    Raises:
+        InputError: bad input, e.g. both paths naming the same file or the same DICOM series.
     """
+    if isinstance(fixed, (str, Path)) and isinstance(moving, (str, Path)):
+        check_distinct_inputs(fixed, moving)
     if isinstance(model, RigidRegistrar):
         registrar = model
     elif isinstance(model, nn.Module):

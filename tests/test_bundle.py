@@ -195,3 +195,41 @@ def test_export_by_tracing_matches_the_eager_model(shipped_bundle, tmp_path):
         got = traced(x)
     assert tuple(got.shape) == (1, 6)
     torch.testing.assert_close(got, want, atol=1e-3, rtol=0)
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_train_with_default_folders_leaves_the_installed_weights_alone_and_runs_without_tensorboard(
+        tiny_dataset, tmp_path):
+    """``monai-rigidreg train`` with its default folders writes under the current directory (never into the
+    installed bundle), and trains, with a warning, where TensorBoard is not importable."""
+    from monai_rigidreg.bundle import default_bundle_path
+
+    shipped = default_bundle_path() / "models" / "model.pt"
+    before = _sha256(shipped)
+    stub = tmp_path / "no_tensorboard" / "tensorboard"
+    stub.mkdir(parents=True)
+    (stub / "__init__.py").write_text("raise ImportError('simulated: tensorboard is not installed')\n")
+    work = tmp_path / "work"
+    work.mkdir()
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(stub.parent)}
+    sets = ["network_size=[32,32,32]", "network_spacing=[8.0,8.0,8.0]", "network_def#regression#pool_size=2",
+            "network_def#regression#channels=[4,8,8,8]", "cascade_steps=1"]
+    cmd = [sys.executable, "-m", "monai_rigidreg.cli", "train", "--datalist", str(tiny_dataset), "--val-datalist",
+           str(tiny_dataset), "--epochs", "1", "--epoch-length", "1", "--num-workers", "0", "--set", *sets]
+    proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True, timeout=400, env=env)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-3000:]
+    assert "TensorBoard is not installed" in out and "Traceback" not in out
+    assert (work / "runs" / "models" / "model.pt").is_file()
+    assert (work / "runs" / "history.json").is_file() and not (work / "runs" / "tensorboard").exists()
+    assert _sha256(shipped) == before
+    # asking for the installed bundle's folder is refused before anything runs
+    proc = subprocess.run([*cmd[:4], "--ckpt-dir", str(shipped.parent), *cmd[4:]], cwd=work, capture_output=True,
+                          text=True, timeout=120, env=env)
+    assert proc.returncode == 2 and "inside the installed monai-rigidreg package" in proc.stderr
+    assert "Traceback" not in proc.stderr and _sha256(shipped) == before

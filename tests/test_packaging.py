@@ -17,7 +17,7 @@ def _pyproject() -> dict:
         import tomllib
     else:  # pragma: no cover
         tomllib = pytest.importorskip("tomli")
-    return tomllib.loads((ROOT / "pyproject.toml").read_text())
+    return tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
 
 
 def test_every_subpackage_is_listed():

@@ -13,7 +13,7 @@ README = Path(__file__).resolve().parents[1] / "README.md"
 
 
 def _snippet(after: str) -> str:
-    text = README.read_text()
+    text = README.read_text(encoding="utf-8")
     start = text.index(after)
     return re.search(r"```python\n(.*?)```", text[start:], re.S).group(1)
 

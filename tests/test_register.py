@@ -241,3 +241,29 @@ def test_bad_cascade_steps_are_refused(small_registrar, steps):
     with pytest.raises(InputError, match="cascade_steps"):
         RigidRegistrar(small_registrar.network, network_size=(32, 32, 32), network_spacing=(8.0, 8.0, 8.0),
                        cascade_steps=steps, device="cpu")
+
+
+def test_a_folder_with_both_series_is_refused_until_the_series_are_named(pair, tmp_path, monkeypatch, capsys,
+                                                                        small_registrar):
+    """A DICOM folder holding the CT and the CBCT series, given as --fixed and --moving: both sides would pick the
+    largest series and register the CT to itself; refused with the series listed, accepted once they are named."""
+    monkeypatch.setattr(RigidRegistrar, "from_bundle", classmethod(lambda cls, *a, **k: small_registrar))
+    both = tmp_path / "both"
+    both.mkdir()
+    for name, uid in (("fixed", "1.2.3.4.100"), ("moving", "1.2.3.4.200")):
+        single = tmp_path / name
+        write_dicom_series(load_volume(pair[name]), single, uid)
+        for f in single.iterdir():
+            f.rename(both / f"{name}_{f.name}")
+    out = tmp_path / "out"
+    assert main(["register", "--fixed", str(both), "--moving", str(both), "--output-dir", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "same DICOM series 1.2.3.4.100" in err and "1.2.3.4.200" in err and "--moving-series-uid" in err
+    assert "slices" in err and "Traceback" not in err
+    assert not out.exists()
+    assert main(["register", "--fixed", str(both), "--moving", str(both), "--output-dir", str(out),
+                 "--fixed-series-uid", "1.2.3.4.100", "--moving-series-uid", "1.2.3.4.200", "--no-qc"]) == 0
+    assert (out / "result.json").is_file()
+    # the same file on both sides, through the Python API too
+    with pytest.raises(InputError, match="same file"):
+        register(pair["fixed"], pair["fixed"], model=small_registrar)

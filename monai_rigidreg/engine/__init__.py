@@ -5,6 +5,7 @@ from monai_rigidreg.engine.criterion import RegistrationCriterion, canonical_gri
 from monai_rigidreg.engine.data import registration_transforms
 from monai_rigidreg.engine.handlers import (
     LossTermsHandler,
+    OptionalTensorBoardStatsHandler,
     ResumeHandler,
     TrainingCheckpointSaver,
     TrainingCurveHandler,
@@ -20,6 +21,7 @@ __all__ = [
     "canonical_grid",
     "registration_transforms",
     "LossTermsHandler",
+    "OptionalTensorBoardStatsHandler",
     "TrainingCurveHandler",
     "ResumeHandler",
     "TrainingCheckpointSaver",

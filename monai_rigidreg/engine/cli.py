@@ -8,8 +8,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-from monai_rigidreg.bundle import default_bundle_path
+from monai_rigidreg.bundle import default_bundle_path, refuse_package_folders
 from monai_rigidreg.errors import InputError
+from monai_rigidreg.io import check_output_dir
 
 __all__ = ["add_parser", "run", "bundle_command"]
 
@@ -19,13 +20,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "train",
         help="train the registration network with the MONAI bundle (wraps 'python -m monai.bundle run')",
         description="Runs the bundle's configs/train.json (or multi_gpu_train.json through torchrun with "
-        "--nproc N). Checkpoints go to <bundle>/models, logs and curves to --output-dir.",
+        "--nproc N). Logs and curves go to --output-dir (default ./runs), checkpoints and the best model.pt to "
+        "--ckpt-dir (default <output-dir>/models); nothing is written into the installed package: copy model.pt "
+        "into a bundle of your own to use it (--bundle).",
     )
     p.add_argument("--datalist", required=True, type=Path, help="training datalist (monai-rigidreg simulate)")
     p.add_argument("--val-datalist", required=True, type=Path, help="validation datalist (fixed paper-protocol set)")
     p.add_argument("--bundle", type=Path, default=None, help="bundle directory (default: the shipped one)")
     p.add_argument("--output-dir", type=Path, default=Path("runs"), help="TensorBoard logs, history, curves.png")
-    p.add_argument("--ckpt-dir", type=Path, default=None, help="checkpoints and model.pt (default: <bundle>/models)")
+    p.add_argument("--ckpt-dir", type=Path, default=None,
+                   help="checkpoints and model.pt (default: <output-dir>/models)")
     p.add_argument("--epochs", type=int, default=None)
     p.add_argument("--epoch-length", type=int, default=None, help="iterations per epoch")
     p.add_argument("--learning-rate", type=float, default=None)
@@ -46,6 +50,11 @@ def bundle_command(args: argparse.Namespace) -> list[str]:
     for p in (args.datalist, args.val_datalist):
         if not p.is_file():
             raise InputError("datalist not found", p)
+    output_dir = args.output_dir.resolve()
+    ckpt_dir = (args.ckpt_dir or args.output_dir / "models").resolve()
+    for folder in (output_dir, ckpt_dir):
+        check_output_dir(folder, allow_existing=True)  # a file, or under a file: refused before anything runs
+    refuse_package_folders(output_dir, ckpt_dir)
     configs = [str(bundle / "configs" / "train.json")]
     if args.nproc > 1:
         configs.append(str(bundle / "configs" / "multi_gpu_train.json"))
@@ -53,8 +62,8 @@ def bundle_command(args: argparse.Namespace) -> list[str]:
         "bundle_root": str(bundle),
         "datalist": str(args.datalist.resolve()),
         "val_datalist": str(args.val_datalist.resolve()),
-        "output_dir": str(args.output_dir.resolve()),
-        "ckpt_dir": str((args.ckpt_dir or bundle / "models").resolve()),
+        "output_dir": str(output_dir),
+        "ckpt_dir": str(ckpt_dir),
         "epochs": args.epochs,
         "epoch_length": args.epoch_length,
         "learning_rate": args.learning_rate,
@@ -85,3 +94,4 @@ def run(args: argparse.Namespace) -> int:
     cmd = bundle_command(args)
     print("running:", " ".join(cmd), flush=True)
     return subprocess.call(cmd)
+

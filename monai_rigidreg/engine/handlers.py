@@ -11,11 +11,18 @@ from pathlib import Path
 from typing import Any
 
 from ignite.engine import Events
-from monai.handlers import CheckpointLoader, CheckpointSaver
+from monai.handlers import CheckpointLoader, CheckpointSaver, TensorBoardStatsHandler
 
 from monai_rigidreg.geometry import PARAM_NAMES
 
-__all__ = ["LossTermsHandler", "TrainingCurveHandler", "ResumeHandler", "TrainingCheckpointSaver", "plot_history"]
+__all__ = [
+    "LossTermsHandler",
+    "TrainingCurveHandler",
+    "ResumeHandler",
+    "TrainingCheckpointSaver",
+    "OptionalTensorBoardStatsHandler",
+    "plot_history",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -198,3 +205,29 @@ class TrainingCheckpointSaver:
     def attach(self, engine: Any) -> None:
         CheckpointSaver(self.save_dir, {**self.save_dict, "trainer": engine}, file_prefix="checkpoint",
                         save_interval=self.save_interval, n_saved=self.n_saved, epoch_level=True).attach(engine)
+
+
+class OptionalTensorBoardStatsHandler:
+    """MONAI's ``TensorBoardStatsHandler`` where TensorBoard is installed; elsewhere a warning and no TensorBoard
+    logs (TensorBoard is the ``tensorboard`` extra, not a dependency: training must run without it).
+
+    Args:
+        kwargs: ``TensorBoardStatsHandler`` arguments (``log_dir``, ``tag_name``, ``output_transform``, ...).
+    """
+
+    _warned = False  # one warning per process, not one per handler
+
+    def __init__(self, **kwargs: Any) -> None:
+        self.kwargs = kwargs
+
+    def attach(self, engine: Any) -> None:
+        try:  # an optional extra: imported where it is used
+            from torch.utils.tensorboard import SummaryWriter  # noqa: F401
+        except ImportError as exc:
+            if not OptionalTensorBoardStatsHandler._warned:
+                logger.warning("TensorBoard is not installed (%s): training runs without TensorBoard logs; the "
+                               "history (history.json) and curves.png are still written. pip install tensorboard "
+                               "to get them", str(exc).splitlines()[0])
+                OptionalTensorBoardStatsHandler._warned = True
+            return
+        TensorBoardStatsHandler(**self.kwargs).attach(engine)
