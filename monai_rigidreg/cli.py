@@ -1,7 +1,8 @@
 """The ``monai-rigidreg`` command line: simulate, train, register, evaluate, demo.
 
 Each sub-command lives with its feature (``add_parser(subparsers)`` + ``run(args) -> int``); this module only
-collects them, sets up logging, and turns the package's own errors into one readable line and exit code 2.
+collects them, sets up logging, and turns failures into one readable line and the exit codes of
+:data:`EXIT_CODES` (documented in every command's ``--help`` and in the README's "Exit codes").
 """
 
 from __future__ import annotations
@@ -10,12 +11,29 @@ import argparse
 import importlib
 import logging
 import sys
+import traceback
 from collections.abc import Sequence
 
 from monai_rigidreg import __version__
-from monai_rigidreg.errors import RigidRegError
+from monai_rigidreg.errors import RigidRegError, Terminated, sigterm_raises
 
-__all__ = ["main", "build_parser"]
+__all__ = ["main", "build_parser", "log_level", "EXIT_CODES"]
+
+EXIT_OK, EXIT_INTERNAL, EXIT_INPUT, EXIT_FLAGGED, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 3, 130, 143
+EXIT_CODES = {
+    EXIT_OK: "success (a registration flagged as a likely failure too, unless --fail-on-flag)",
+    EXIT_INTERNAL: "internal failure (a bug: rerun with -v for the traceback and report it)",
+    EXIT_INPUT: "usage error or bad input: a missing, unreadable or unsuitable file, a bad option value, an output "
+                "folder that exists or cannot be made",
+    EXIT_FLAGGED: "register --fail-on-flag: the registration was flagged as a likely failure (outputs written)",
+    EXIT_INTERRUPTED: "interrupted (Ctrl-C)",
+    EXIT_TERMINATED: "terminated (SIGTERM)",
+}
+"""The exit status of ``monai-rigidreg``, the same for every sub-command."""
+
+EXIT_CODES_HELP = ("exit status: " + "; ".join(f"{code} {text}" for code, text in EXIT_CODES.items())
+                   + ". A failed run leaves no partial output (simulate keeps the finished cases of an interrupted "
+                   "run, to resume; its dataset.json appears only when the dataset is complete).")
 
 # sub-command modules, in the order they appear in --help
 COMMAND_MODULES = (
@@ -32,9 +50,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="monai-rigidreg",
         description="Rigid 6-DoF CBCT to planning-CT registration (MONAI plugin).",
+        epilog=EXIT_CODES_HELP,
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    _add_verbosity(parser, defaults=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
         try:
@@ -43,8 +62,28 @@ def build_parser() -> argparse.ArgumentParser:
             if exc.name is not None and name.startswith(exc.name):
                 continue  # this sub-command is not part of this installation
             raise
-        module.add_parser(sub)
+        _add_verbosity(module.add_parser(sub), defaults=False)
+    for command in sub.choices.values():
+        command.epilog = f"{command.epilog}\n\n{EXIT_CODES_HELP}" if command.epilog else EXIT_CODES_HELP
     return parser
+
+
+def _add_verbosity(parser: argparse.ArgumentParser, defaults: bool) -> None:
+    """``-v`` / ``-q`` on the main parser and on every sub-command (``monai-rigidreg register -q ...`` works too);
+    the sub-commands' copies leave the main parser's value alone unless given (``argparse.SUPPRESS``), and replace
+    it when given."""
+    default = 0 if defaults else argparse.SUPPRESS
+    parser.add_argument("-v", "--verbose", action="count", default=default,
+                        help="more log output (-v: debug)")
+    parser.add_argument("-q", "--quiet", action="count", default=default,
+                        help="less log output (-q: warnings and errors only, -qq: errors only)")
+
+
+def log_level(verbose: int, quiet: int) -> int:
+    """The logging level for ``-v``/``-q`` counts: info by default, debug with ``-v``, warning with ``-q``,
+    error with ``-qq``."""
+    return {1: logging.DEBUG, 0: logging.INFO, -1: logging.WARNING}.get(max(-2, min(1, verbose - quiet)),
+                                                                         logging.ERROR)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -52,21 +91,37 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(
-        level=logging.WARNING - 10 * min(args.verbose + 1, 2),
+        level=log_level(args.verbose, args.quiet),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         datefmt="%H:%M:%S",
     )
     if not getattr(args, "func", None):
-        parser.print_help()
-        return 1
+        parser.print_help(sys.stderr)
+        return EXIT_INPUT  # a usage error, as argparse's own
+    prog = f"monai-rigidreg {args.command}"
     try:
-        return int(args.func(args) or 0)
+        with sigterm_raises():  # SIGTERM runs the same clean-up as Ctrl-C: no temporary folders left behind
+            return int(args.func(args) or 0)
     except RigidRegError as exc:
-        print(f"monai-rigidreg {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except Terminated:
+        print(f"{prog}: terminated", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except OSError as exc:  # the file system refused (permissions, disk full, ...): the user's to fix
+        where = " -> ".join(str(f) for f in (exc.filename, exc.filename2) if f is not None)
+        print(f"{prog}: error: {where + ': ' if where else ''}{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_INPUT
+    except Exception as exc:  # noqa: BLE001 - the last line of defence: one line, the traceback on request
+        if getattr(args, "verbose", 0) > 0:
+            traceback.print_exc()
+        first = str(exc).strip().splitlines()
+        print(f"{prog}: internal error: {type(exc).__name__}: {first[0] if first else ''} (a bug; rerun with -v "
+              "for the traceback and report it)", file=sys.stderr)
+        return EXIT_INTERNAL
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -17,6 +18,8 @@ import numpy as np
 from monai_rigidreg.geometry import PARAM_NAMES, parameter_errors, target_registration_error
 
 __all__ = ["add_parser", "run", "run_demo", "DEMO_MOTION", "DEMO_SIMULATION"]
+
+logger = logging.getLogger(__name__)
 
 DEMO_MOTION = (8.0, -5.0, 6.0, 4.0, -3.0, 7.0)
 """The demo's known motion: (tx, ty, tz) mm, (rx, ry, rz) degrees."""
@@ -58,6 +61,7 @@ def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=D
     """
     # imported here: this module also defines the `demo` sub-command's parser, built for every `monai-rigidreg`
     # call, and the registration stack pulls in MONAI (seconds; see register_cli.run)
+    from monai_rigidreg.evaluation.evaluate import body_points
     from monai_rigidreg.io import check_output_dir, load_volume
     from monai_rigidreg.outputs import write_outputs
     from monai_rigidreg.registration import RigidRegistrar
@@ -66,16 +70,17 @@ def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=D
     out = check_output_dir(output_dir, overwrite)
     t0 = time.perf_counter()
     settings = {**DEMO_SIMULATION, **(sim_overrides or {})}
+    logger.info("demo 1/3: simulating a Sim-CT and a CBCT of the %s phantom under the known motion", phantom)
     sim = simulate_pair(out / "data", phantom=phantom, params=list(motion), seed=seed, device=device, **settings)
     t_sim = time.perf_counter() - t0
     fixed = load_volume(sim["fixed"])
     moving = load_volume(sim["moving"])
+    logger.info("demo 2/3: registering with the shipped network (%.1f s so far)", time.perf_counter() - t0)
     registrar = RigidRegistrar.from_bundle(bundle, device=device)
     result = registrar(fixed, moving, refine=refine)
+    logger.info("demo 3/3: writing the outputs and the QC figure")
     paths = write_outputs(result, fixed, moving, out / "registration", overwrite=True)
     truth = np.asarray(sim["params"], dtype=np.float64)
-    from monai_rigidreg.evaluation.evaluate import body_points
-
     tre = float(target_registration_error(result.params, truth, body_points(fixed), center=result.center))
     report = {
         "true": dict(zip(PARAM_NAMES, truth.tolist())),

@@ -29,6 +29,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--moving-series-uid", default=None, help="DICOM series UID of the CBCT (default: largest)")
     p.add_argument("--no-qc", action="store_true", help="skip the QC figure")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
+    p.add_argument("--fail-on-flag", action="store_true",
+                   help="exit with status 3 when the result is flagged as a likely failure (default: 0; the outputs "
+                   "are written either way and result.json says flagged)")
     p.set_defaults(func=run)
     return p
 
@@ -50,4 +53,4 @@ def run(args: argparse.Namespace) -> int:
                       "flagged": summary["flagged"], "runtime_s": summary["runtime_s"]}, indent=2))
     for name, p in paths.items():
         print(f"  {name:18s} {p}")
-    return 0
+    return 3 if args.fail_on_flag and summary["flagged"] else 0  # 3: cli.EXIT_FLAGGED

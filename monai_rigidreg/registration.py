@@ -47,7 +47,7 @@ from monai_rigidreg.network_grid import NetworkGridSpec
 from monai_rigidreg.networks import cascade_register
 from monai_rigidreg.transforms.grid import NormalizeHU, ResampleToNetworkGrid, resample_to_grid
 
-__all__ = ["RegistrationResult", "RigidRegistrar", "register"]
+__all__ = ["RegistrationResult", "RigidRegistrar", "register", "check_intensities"]
 
 logger = logging.getLogger(__name__)
 
@@ -64,7 +64,8 @@ class RegistrationResult:
             ``total``).
         confidence: score in [0, 1] (see :func:`confidence_score`); ``flagged`` when below the threshold.
         flagged: likely failure: check the QC figure.
-        details: network-only parameters, refinement change, similarity before/after, swap consistency.
+        details: network-only parameters, refinement change, similarity before/after, swap consistency, and
+            ``warnings`` (a list of sentences, e.g. an input whose intensities are not HU) where there are any.
     """
 
     params: np.ndarray
@@ -249,6 +250,8 @@ class RigidRegistrar:
         timings: dict[str, float] = {}
         fixed_img = as_image(fixed, "fixed")
         moving_img = as_image(moving, "moving")
+        warnings = [w for img, name in ((fixed_img, "fixed (CT)"), (moving_img, "moving (CBCT)"))
+                    for w in check_intensities(img, name, self.hu_range)]
         timings["load"] = time.perf_counter() - t_start
         if not grids_overlap(Grid.from_sitk(fixed_img), Grid.from_sitk(moving_img)):
             raise InputError(
@@ -275,6 +278,8 @@ class RigidRegistrar:
         details: dict[str, Any] = {"network_params": {},
                                    "cascade_steps": self.cascade_steps if cascade_steps is None else cascade_steps,
                                    "device": str(self.device)}
+        if warnings:
+            details["warnings"] = warnings
 
         fov_t = None
         if refine or assess:
@@ -332,6 +337,34 @@ class RigidRegistrar:
         return RegistrationResult(params, fixed_center, registered, timings, confidence, flagged, details)
 
 
+HU_AIR_LIMIT = -500.0
+"""A CT or CBCT in HU holds air (about -1000 HU) somewhere: an image whose minimum lies above this is not in HU."""
+
+
+def check_intensities(image: sitk.Image, name: str, hu_range: tuple[float, float] = (-1000.0, 2000.0)) -> list[str]:
+    """Check that ``image`` can be registered as a CT/CBCT in Hounsfield units.
+
+    Returns:
+        warnings (also logged): an intensity range that is not HU (no air, e.g. a uint8 or int8 export, a
+        normalized or raw-detector image), which the network, trained on HU, reads as something else.
+
+    Raises:
+        InputError: the image is constant (every voxel the same value, e.g. all zero): nothing to register.
+    """
+    stats = sitk.MinimumMaximumImageFilter()
+    stats.Execute(image)
+    lo, hi = stats.GetMinimum(), stats.GetMaximum()
+    if not hi > lo:
+        raise InputError(f"the {name} image is constant (every voxel is {lo:g}): there is nothing to register")
+    if lo <= HU_AIR_LIMIT:
+        return []
+    msg = (f"the {name} image's intensities range from {lo:g} to {hi:g}, which is not HU (CT air is about -1000; "
+           f"the network maps {hu_range[0]:g}..{hu_range[1]:g} HU to its input range): convert it to HU first "
+           "(e.g. rescale slope/intercept), or expect a poor, flagged result")
+    logger.warning("%s", msg)
+    return [msg]
+
+
 _DEFAULT_REGISTRARS: dict[tuple[str, str], RigidRegistrar] = {}
 
 
@@ -367,7 +400,8 @@ def register(
         ``transform`` (``Euler3DTransform``), ``registered``, ``timings`` and ``confidence``.
 
     Raises:
-        InputError: bad input, e.g. both paths naming the same file or the same DICOM series.
+        InputError: bad input, e.g. both paths naming the same file or the same DICOM series, or a constant
+            image.
     """
     if isinstance(fixed, (str, Path)) and isinstance(moving, (str, Path)):
         check_distinct_inputs(fixed, moving)

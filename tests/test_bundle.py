@@ -218,13 +218,14 @@ def test_train_with_default_folders_leaves_the_installed_weights_alone_and_runs_
     work.mkdir()
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(stub.parent)}
     sets = ["network_size=[32,32,32]", "network_spacing=[8.0,8.0,8.0]", "network_def#regression#pool_size=2",
-            "network_def#regression#channels=[4,8,8,8]", "cascade_steps=1"]
+            "network_def#regression#channels=[4,8,8,8]", "cascade_steps=1", "log_every=1"]
     cmd = [sys.executable, "-m", "monai_rigidreg.cli", "train", "--datalist", str(tiny_dataset), "--val-datalist",
            str(tiny_dataset), "--epochs", "1", "--epoch-length", "1", "--num-workers", "0", "--set", *sets]
     proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True, timeout=400, env=env)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-3000:]
     assert "TensorBoard is not installed" in out and "Traceback" not in out
+    assert "Iter: 1/1" in out  # per-iteration progress (every log_every iterations)
     assert (work / "runs" / "models" / "model.pt").is_file()
     assert (work / "runs" / "history.json").is_file() and not (work / "runs" / "tensorboard").exists()
     assert _sha256(shipped) == before

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import logging
 import sys
 from pathlib import Path
 
 import pytest
 
-from monai_rigidreg.cli import build_parser, main
+from monai_rigidreg.cli import build_parser, log_level, main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -49,3 +50,13 @@ def test_default_bundle_is_found():
     path = default_bundle_path()
     assert (path / "configs" / "inference.json").is_file()
     assert bundle_settings(path)["network_size"] == [64, 64, 64]
+
+
+@pytest.mark.parametrize(("argv", "level"), [
+    ([], logging.INFO), (["-v"], logging.DEBUG), (["-q"], logging.WARNING), (["-qq"], logging.ERROR),
+])
+def test_verbosity_before_or_after_the_sub_command(argv, level):
+    parser = build_parser()
+    rest = ["--fixed", "a", "--moving", "b", "--output-dir", "c"]
+    for args in (parser.parse_args([*argv, "register", *rest]), parser.parse_args(["register", *argv, *rest])):
+        assert log_level(args.verbose, args.quiet) == level

@@ -57,8 +57,13 @@ def load_datalist(path: str | Path, key: str | None = None) -> tuple[list[dict[s
             break
     else:
         raise InputError(f"datalist has none of the keys {keys}", p)
+    if not isinstance(items, list) or not items:
+        raise InputError(f"datalist key {k!r} holds no cases (expected a non-empty list of items with 'fixed', "
+                         f"'moving' and the ground truth; got {json.dumps(items)[:60]})", p)
     out = []
     for i, item in enumerate(items):
+        if not isinstance(item, dict):
+            raise InputError(f"item {i} of {k!r} is not an object with 'fixed' and 'moving'", p)
         for need in ("fixed", "moving"):
             if need not in item:
                 raise InputError(f"item {i} has no {need!r}", p)
@@ -156,9 +161,11 @@ def evaluate_datalist(
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise InputError(f"unknown method(s) {unknown}; choose from {METHODS}")
+    if max_cases is not None and (isinstance(max_cases, bool) or not isinstance(max_cases, int) or max_cases < 1):
+        raise InputError(f"max_cases must be a whole number >= 1, got {max_cases!r}")
     items, _ = load_datalist(datalist, key)
     if max_cases is not None:
-        items = items[: int(max_cases)]
+        items = items[:max_cases]
     if any(m.startswith("network") for m in methods) and registrar is None:
         registrar = RigidRegistrar.from_bundle(bundle, device=device)
     if "elastix" in methods:

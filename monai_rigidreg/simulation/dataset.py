@@ -201,12 +201,11 @@ def simulate_dataset(
         if overwrite or not ((out / item["moving"]).is_file() and (out / item["moving_fov"]).is_file()):
             todo.append({**item, "index": i, "object_index": k})
 
-    # the Sim-CTs: one per object, unmoved
-    for k in range(n_obj):
-        path = out / f"objects/obj{k:03d}_simct.nii.gz"
-        if path.is_file() and not overwrite:
-            continue
-        write_simct(cfg, k, path)
+    # the Sim-CTs: one per object, unmoved (fan-beam FBP of every slice: the longest single step)
+    simct_todo = [k for k in range(n_obj)
+                  if overwrite or not (out / f"objects/obj{k:03d}_simct.nii.gz").is_file()]
+    for k in tqdm(simct_todo, desc="Sim-CTs", unit="volume", disable=not progress or not simct_todo):
+        write_simct(cfg, k, out / f"objects/obj{k:03d}_simct.nii.gz")
     cfg_dict = dataclasses.asdict(cfg)
     bar = tqdm(total=len(todo), desc="CBCT cases", unit="case", disable=not progress)
     if cfg.workers > 0 and len(todo) > 1:
