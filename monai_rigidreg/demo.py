@@ -57,41 +57,47 @@ def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=D
     ``sim_overrides`` update :data:`DEMO_SIMULATION` and go to
     :func:`~monai_rigidreg.simulation.simulate_pair` (any :class:`~monai_rigidreg.simulation.SimulationConfig`
     field; the demo's grid sizes and spacings win over a ``preset`` unless they are overridden too). An existing,
-    non-empty ``output_dir`` is refused unless ``overwrite``.
+    non-empty ``output_dir`` is refused unless ``overwrite``. Everything is written into a hidden sibling folder
+    and moved into place when complete, so a failed or interrupted demo leaves nothing behind.
     """
     # imported here: this module also defines the `demo` sub-command's parser, built for every `monai-rigidreg`
     # call, and the registration stack pulls in MONAI (seconds; see register_cli.run)
+    from monai_rigidreg.device import resolve_device
     from monai_rigidreg.evaluation.evaluate import body_points
-    from monai_rigidreg.io import check_output_dir, load_volume
+    from monai_rigidreg.io import load_volume
     from monai_rigidreg.outputs import write_outputs
     from monai_rigidreg.registration import RigidRegistrar
     from monai_rigidreg.simulation.pair import simulate_pair
+    from monai_rigidreg.staging import staged_output_dir
 
-    out = check_output_dir(output_dir, overwrite)
-    t0 = time.perf_counter()
-    settings = {**DEMO_SIMULATION, **(sim_overrides or {})}
-    logger.info("demo 1/3: simulating a Sim-CT and a CBCT of the %s phantom under the known motion", phantom)
-    sim = simulate_pair(out / "data", phantom=phantom, params=list(motion), seed=seed, device=device, **settings)
-    t_sim = time.perf_counter() - t0
-    fixed = load_volume(sim["fixed"])
-    moving = load_volume(sim["moving"])
-    logger.info("demo 2/3: registering with the shipped network (%.1f s so far)", time.perf_counter() - t0)
-    registrar = RigidRegistrar.from_bundle(bundle, device=device)
-    result = registrar(fixed, moving, refine=refine)
-    logger.info("demo 3/3: writing the outputs and the QC figure")
-    paths = write_outputs(result, fixed, moving, out / "registration", overwrite=True)
-    truth = np.asarray(sim["params"], dtype=np.float64)
-    tre = float(target_registration_error(result.params, truth, body_points(fixed), center=result.center))
-    report = {
-        "true": dict(zip(PARAM_NAMES, truth.tolist())),
-        "pred": dict(zip(PARAM_NAMES, np.round(result.params, 3).tolist())),
-        "abs_error": dict(zip(PARAM_NAMES, np.round(parameter_errors(result.params, truth), 3).tolist())),
-        "tre_mm": round(tre, 3),
-        "confidence": round(result.confidence, 3),
-        "timings": {"simulation_s": round(t_sim, 2), **{k: round(v, 3) for k, v in result.timings.items()}},
-        "paths": {k: str(v) for k, v in {**paths, "fixed": sim["fixed"], "moving": sim["moving"]}.items()},
-    }
-    (out / "demo.json").write_text(json.dumps(report, indent=2))
+    resolve_device(device)  # a bad device string is refused before anything is simulated
+    final = Path(output_dir)
+    with staged_output_dir(final, overwrite) as out:  # written aside, moved into place when complete
+        t0 = time.perf_counter()
+        settings = {**DEMO_SIMULATION, **(sim_overrides or {})}
+        logger.info("demo 1/3: simulating a Sim-CT and a CBCT of the %s phantom under the known motion", phantom)
+        sim = simulate_pair(out / "data", phantom=phantom, params=list(motion), seed=seed, device=device, **settings)
+        t_sim = time.perf_counter() - t0
+        fixed = load_volume(sim["fixed"])
+        moving = load_volume(sim["moving"])
+        logger.info("demo 2/3: registering with the shipped network (%.1f s so far)", time.perf_counter() - t0)
+        registrar = RigidRegistrar.from_bundle(bundle, device=device)
+        result = registrar(fixed, moving, refine=refine)
+        logger.info("demo 3/3: writing the outputs and the QC figure")
+        paths = write_outputs(result, fixed, moving, out / "registration", overwrite=True)
+        truth = np.asarray(sim["params"], dtype=np.float64)
+        tre = float(target_registration_error(result.params, truth, body_points(fixed), center=result.center))
+        report = {
+            "true": dict(zip(PARAM_NAMES, truth.tolist())),
+            "pred": dict(zip(PARAM_NAMES, np.round(result.params, 3).tolist())),
+            "abs_error": dict(zip(PARAM_NAMES, np.round(parameter_errors(result.params, truth), 3).tolist())),
+            "tre_mm": round(tre, 3),
+            "confidence": round(result.confidence, 3),
+            "timings": {"simulation_s": round(t_sim, 2), **{k: round(v, 3) for k, v in result.timings.items()}},
+            "paths": {k: str(final / Path(v).relative_to(out))
+                      for k, v in {**paths, "fixed": sim["fixed"], "moving": sim["moving"]}.items()},
+        }
+        (out / "demo.json").write_text(json.dumps(report, indent=2))
     return report
 
 

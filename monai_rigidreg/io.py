@@ -34,6 +34,8 @@ __all__ = [
     "metatensor_to_sitk",
     "check_output_path",
     "check_output_dir",
+    "make_dirs",
+    "remove_made_dirs",
     "check_distinct_inputs",
     "describe_dicom_series",
     "select_dicom_series",
@@ -93,6 +95,28 @@ def check_output_dir(path: str | Path, overwrite: bool = False, allow_existing: 
     if p.is_dir() and any(p.iterdir()) and not (overwrite or allow_existing):
         raise OutputExistsError(p)
     return p
+
+
+def make_dirs(folder: str | Path) -> list[Path]:
+    """Create ``folder`` and its missing parents; return the folders created, deepest first (for
+    :func:`remove_made_dirs` after a failure, so that a failed command leaves no empty folders behind)."""
+    folder = Path(folder)
+    missing = []
+    for d in (folder, *folder.parents):
+        if d.exists():
+            break
+        missing.append(d)
+    folder.mkdir(parents=True, exist_ok=True)
+    return missing
+
+
+def remove_made_dirs(made: list[Path]) -> None:
+    """Remove the folders :func:`make_dirs` created, deepest first, where they are still empty."""
+    for d in made:
+        try:
+            d.rmdir()
+        except OSError:  # something else has written into it meanwhile: it stays
+            pass
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -188,27 +212,106 @@ def _read_dicom_series(directory: Path, series_uid: str | None) -> sitk.Image:
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames(files)
     reader.MetaDataDictionaryArrayUpdateOn()
+    warn = sitk.ProcessObject.GetGlobalWarningDisplay()
+    sitk.ProcessObject.SetGlobalWarningDisplay(False)  # ITK's "non uniform sampling" note: handled below, in words
     try:
         image = reader.Execute()
     except RuntimeError as exc:
         raise InputError(f"could not read DICOM series {series_uid} ({_first_line(exc)})", directory) from exc
-    if len(files) > 2:
-        positions = np.array([_slice_position(reader, i) for i in range(len(files))])
-        if np.all(np.isfinite(positions)):
-            gaps = np.diff(positions)
-            if np.any(gaps <= 0) or (np.ptp(gaps) > 0.01 * max(abs(np.mean(gaps)), 1e-6)):
-                logger.warning("%s: DICOM slices are unevenly spaced; geometry uses the mean spacing", directory)
-    return image
+    finally:
+        sitk.ProcessObject.SetGlobalWarningDisplay(warn)
+    return _on_true_slice_positions(image, reader, files, directory, series_uid)
 
 
-def _slice_position(reader: sitk.ImageSeriesReader, i: int) -> float:
-    try:
-        ipp = [float(v) for v in reader.GetMetaData(i, "0020|0032").split("\\")]
-        iop = [float(v) for v in reader.GetMetaData(i, "0020|0037").split("\\")]
-    except (RuntimeError, ValueError):
-        return float("nan")
-    normal = np.cross(iop[:3], iop[3:])
-    return float(np.dot(normal, ipp))
+SLICE_GAP_TOLERANCE = 0.01
+"""Slice gaps (along the slice normal) that differ by more than this fraction of the median gap are uneven."""
+
+
+def _slice_origins(reader: sitk.ImageSeriesReader, n: int) -> np.ndarray | None:
+    """Image Position (Patient) of each of the ``n`` slices read, ``[n, 3]`` (LPS mm), or ``None`` if one lacks it."""
+    out = []
+    for i in range(n):
+        try:
+            ipp = [float(v) for v in reader.GetMetaData(i, "0020|0032").split("\\")]
+        except (RuntimeError, ValueError):
+            return None
+        if len(ipp) != 3:
+            return None
+        out.append(ipp)
+    return np.asarray(out, dtype=np.float64)
+
+
+def _on_true_slice_positions(image: sitk.Image, reader: sitk.ImageSeriesReader, files: list[str], directory: Path,
+                             series_uid: str) -> sitk.Image:
+    """``image`` (a series read by ITK, which spaces the slices evenly at their mean gap) with every slice at its
+    true position.
+
+    The slice positions along the normal come from each file's Image Position (Patient). Even gaps: the image as
+    read. Uneven gaps (a missing or unreadable slice, mixed slice thicknesses): resampled onto a regular grid at the
+    smallest gap, each voxel interpolated linearly between the two slices around it, with a warning that names the
+    gaps. Refused: slices at the same position, origins that drift sideways (gantry tilt), or gaps so uneven that
+    the regular grid would need more than four times the slices.
+    """
+    n = len(files)
+    if n < 3 or image.GetSize()[2] != n or image.GetNumberOfComponentsPerPixel() != 1:
+        return image
+    ipp = _slice_origins(reader, n)
+    if ipp is None:
+        logger.warning("%s: DICOM series %s: a slice has no Image Position (Patient); the slices are taken as evenly "
+                       "spaced (%.4g mm)", directory, series_uid, image.GetSpacing()[2])
+        return image
+    normal = np.asarray(image.GetDirection(), dtype=np.float64).reshape(3, 3)[:, 2]
+    rel = ipp - ipp[0]
+    pos = rel @ normal
+    spacing = image.GetSpacing()
+    drift = float(np.linalg.norm(rel - np.outer(pos, normal), axis=1).max())
+    if drift > max(1e-3, 0.1 * min(spacing[:2])):
+        raise InputError(f"DICOM series {series_uid}: the slice origins drift sideways by up to {drift:.2f} mm "
+                         "across the series (a tilted gantry or a sheared volume), which this reader cannot place "
+                         "correctly; resample the series onto a regular grid first (e.g. 3D Slicer's acquisition "
+                         "geometry regularization)", directory)
+    order = np.argsort(pos, kind="stable")
+    tol = max(1e-3, SLICE_GAP_TOLERANCE * float(np.median(np.diff(pos[order]))))
+    same = np.flatnonzero(np.diff(pos[order]) <= tol)
+    if same.size:  # GDCM cannot sort such a series by position either
+        a, b = order[same[0]], order[same[0] + 1]
+        raise InputError(f"DICOM series {series_uid}: two slices lie at the same position ({pos[a]:.3f} mm along the "
+                         f"slice normal): {Path(files[a]).name} and {Path(files[b]).name} ({same.size} such pair(s)): "
+                         "duplicated files, or two acquisitions in one series; remove the extra files or choose "
+                         "another series", directory)
+    gaps = np.diff(pos)
+    if np.any(gaps <= 0):  # pragma: no cover - GDCM sorts distinct positions along the normal ITK uses
+        raise InputError(f"DICOM series {series_uid}: the slices are not ordered by position along the slice normal",
+                         directory)
+    if gaps.max() - gaps.min() <= tol:
+        return image
+    step = float(gaps.min())
+    m = int(round(pos[-1] / step)) + 1
+    uneven = [k for k in range(n - 1) if gaps[k] - step > tol]
+    multiple = np.abs(gaps / step - np.round(gaps / step)) < 0.05  # a whole number of regular gaps
+    listed = "; ".join(f"{gaps[k]:.4g} mm between slices {k} and {k + 1} (at {pos[k]:.3f} and {pos[k + 1]:.3f} mm"
+                       f"{', a missing or unreadable slice?' if multiple[k] else ''})"
+                       for k in uneven[:3]) + (f"; and {len(uneven) - 3} more" if len(uneven) > 3 else "")
+    if m > 4 * n:
+        raise InputError(f"DICOM series {series_uid}: slice gaps range from {step:.4g} to {gaps.max():.4g} mm "
+                         f"({listed}); a regular grid at the smallest gap would need {m} slices for {n}: remove the "
+                         "stray slice(s) or choose another series", directory)
+    dz = float(pos[-1]) / (m - 1)
+    arr = sitk.GetArrayViewFromImage(image)  # [z, y, x], slices in position order
+    at = np.arange(m) * dz
+    k = np.clip(np.searchsorted(pos, at, side="right") - 1, 0, n - 2)
+    w = np.clip((at - pos[k]) / gaps[k], 0.0, 1.0).astype(np.float32)
+    out = np.empty((m, *arr.shape[1:]), dtype=np.float32)
+    for j in range(m):
+        out[j] = (1.0 - w[j]) * arr[k[j]] + w[j] * arr[k[j] + 1]
+    regular = sitk.GetImageFromArray(out)
+    regular.SetOrigin(image.GetOrigin())
+    regular.SetDirection(image.GetDirection())
+    regular.SetSpacing((spacing[0], spacing[1], dz))
+    logger.warning("%s: DICOM series %s: the slices are unevenly spaced (%s); resampled from %d slices onto a regular "
+                   "grid of %d slices at %.4g mm, each interpolated linearly between the slices around it",
+                   directory, series_uid, listed, n, m, dz)
+    return regular
 
 
 def _first_line(exc: BaseException) -> str:
@@ -257,10 +360,13 @@ def load_volume(
         check_finite: raise for NaN/inf voxels.
 
     Returns:
-        the volume as a ``SimpleITK.Image`` (LPS geometry as SimpleITK reads it).
+        the volume as a ``SimpleITK.Image`` (LPS geometry as SimpleITK reads it). A DICOM series whose slice gaps
+        are uneven (a missing or unreadable slice, mixed spacing) is resampled onto a regular grid at its smallest
+        gap, every slice at its true position, with a logged warning.
 
     Raises:
-        InputError: missing, unreadable or corrupt file, no DICOM series, not a scalar 3D volume, NaN voxels.
+        InputError: missing, unreadable or corrupt file, no DICOM series, not a scalar 3D volume, NaN voxels, a
+            DICOM series with two slices at one position or with sideways-drifting slice origins (gantry tilt).
     """
     p = Path(path)
     if not p.exists():

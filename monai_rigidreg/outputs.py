@@ -1,4 +1,6 @@
-"""The files of a registration: ``transform.tfm``, ``registered.nii.gz``, ``result.json`` and ``qc.png``.
+"""The files of a registration: ``transform.tfm`` (or ``.h5``), ``TransformParameters.txt`` (elastix),
+``registered.nii.gz``, ``result.json`` (with the couch shifts and the audit trail), ``qc.png`` and, for DICOM
+inputs, ``registration.dcm`` (a DICOM Spatial Registration object).
 
 :func:`write_outputs` writes them for a :class:`~monai_rigidreg.registration.RegistrationResult`;
 :func:`register_files` reads, registers and writes (the ``register`` command and the bundle's ``inference.json``).
@@ -7,14 +9,8 @@
 from __future__ import annotations
 
 import contextlib
-import ctypes
-import errno
-import functools
 import json
 import logging
-import os
-import secrets
-import shutil
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,8 +18,12 @@ from typing import Any
 
 import SimpleITK as sitk
 
-from monai_rigidreg.errors import InputError, OutputExistsError, RigidRegError, Terminated, sigterm_raises
-from monai_rigidreg.geometry import PARAM_NAMES
+from monai_rigidreg import __version__
+from monai_rigidreg.couch import couch_shifts
+from monai_rigidreg.dicom_reg import SeriesReference, series_reference, write_spatial_registration
+from monai_rigidreg.elastix_params import ELASTIX_PARAMETER_FILE, write_elastix_transform
+from monai_rigidreg.errors import InputError, RigidRegError, Terminated, sigterm_raises
+from monai_rigidreg.geometry import PARAM_NAMES, Grid, invert_matrix
 from monai_rigidreg.io import (
     check_distinct_inputs,
     check_output_dir,
@@ -32,16 +32,38 @@ from monai_rigidreg.io import (
     save_volume,
     write_transform,
 )
+from monai_rigidreg.provenance import registration_provenance
 from monai_rigidreg.qc import qc_figure
 from monai_rigidreg.registration import RegistrationResult, RigidRegistrar, _check_steps
+from monai_rigidreg.staging import staged_output_dir
 
-__all__ = ["OUTPUT_FILES", "write_outputs", "register_files", "check_register_inputs", "bundle_check_inputs",
-           "bundle_register_files"]
+__all__ = [
+    "OUTPUT_FILES",
+    "DEFAULT_OUTPUT_FILES",
+    "TRANSFORM_FORMATS",
+    "REG_MODES",
+    "write_outputs",
+    "staged_output_dir",
+    "register_files",
+    "dicom_references",
+    "check_register_inputs",
+    "bundle_check_inputs",
+    "bundle_register_files",
+]
 
 logger = logging.getLogger(__name__)
 
-OUTPUT_FILES: tuple[str, ...] = ("transform.tfm", "registered.nii.gz", "result.json", "qc.png")
-"""The files :func:`write_outputs` writes (``qc.png`` only with ``qc=True``)."""
+OUTPUT_FILES: tuple[str, ...] = ("transform.tfm", "transform.h5", ELASTIX_PARAMETER_FILE, "registered.nii.gz",
+                                  "result.json", "qc.png", "registration.dcm")
+"""The files :func:`write_outputs` can write: ``transform.tfm`` or ``transform.h5`` (``transform_format``),
+``qc.png`` with ``qc=True``, ``registration.dcm`` with DICOM references; the others always."""
+DEFAULT_OUTPUT_FILES: tuple[str, ...] = ("transform.tfm", ELASTIX_PARAMETER_FILE, "registered.nii.gz", "result.json",
+                                          "qc.png")
+"""What :func:`write_outputs` writes with its defaults (no DICOM references)."""
+TRANSFORM_FORMATS: tuple[str, ...] = ("tfm", "h5")
+REG_MODES: tuple[str, ...] = ("auto", "on", "off")
+"""``registration.dcm``: ``auto`` where both inputs are DICOM series with their own frames of reference (else a
+warning says why not), ``on`` required (refused before registering when it cannot be written), ``off`` never."""
 
 
 def write_outputs(
@@ -51,8 +73,12 @@ def write_outputs(
     output_dir: str | Path,
     overwrite: bool = False,
     qc: bool = True,
+    names: tuple[str, str] | None = None,
+    transform_format: str = "tfm",
+    dicom_references: tuple[SeriesReference, SeriesReference] | None = None,
 ) -> dict[str, Path]:
-    """Write :data:`OUTPUT_FILES` for ``result`` into ``output_dir``.
+    """Write :data:`OUTPUT_FILES` for ``result`` into ``output_dir`` (``names``: the inputs' display names for the
+    QC figure, e.g. their file names).
 
     Everything is written to a hidden sibling folder first and renamed into place at the end, so a failure, Ctrl-C
     or SIGTERM leaves no partial output and no temporary folder (nor the parent folders this call created). An
@@ -61,132 +87,38 @@ def write_outputs(
     filled meanwhile (two runs into one new folder: one wins, the other is refused and the winner's files are
     kept); with ``overwrite`` the old folder is renamed aside and removed only once the new one is in place.
 
+    ``TransformParameters.txt`` is the same transform for elastix's ``transformix``: applied to the CBCT it gives
+    ``registered.nii.gz`` (linear interpolation, the same fill value: the CBCT's minimum). With
+    ``dicom_references`` (the CT's and the CBCT's series, :func:`~monai_rigidreg.dicom_reg.series_reference`),
+    ``registration.dcm`` stores the inverse matrix (CBCT -> CT coordinates) as DICOM defines it.
+
     Returns:
         ``{file name: path}`` of the files written.
 
     Raises:
         OutputExistsError: ``output_dir`` exists (or appeared while this call ran) and is not empty.
     """
-    out = check_output_dir(output_dir, overwrite)
-    with sigterm_raises(only_if_default=True):  # the command line installs its own handler for the whole run
-        made = _make_parents(out.parent)
-        tmp = None
-        try:
-            tmp = _new_sibling(out, "tmp")
-            write_transform(result.transform, tmp / "transform.tfm")
-            registered = (result.registered if result.registered is not None
-                          else resample(moving, fixed, result.transform))
-            save_volume(registered, tmp / "registered.nii.gz")
-            (tmp / "result.json").write_text(json.dumps(result.to_dict(), indent=2))
-            if qc:
-                p = result.params
-                title = (f"tx={p[0]:.2f} ty={p[1]:.2f} tz={p[2]:.2f} mm   rx={p[3]:.2f} ry={p[4]:.2f} "
-                         f"rz={p[5]:.2f} deg   confidence={result.confidence:.2f}"
-                         f"{'  FLAGGED' if result.flagged else ''}")
-                qc_figure(fixed, moving, registered, tmp / "qc.png", title=title)
-            _move_into_place(tmp, out, overwrite)
-        except BaseException:
-            if tmp is not None:
-                shutil.rmtree(tmp, ignore_errors=True)
-            _remove_made(made)
-            raise
+    if transform_format not in TRANSFORM_FORMATS:
+        raise InputError(f"transform format must be one of {TRANSFORM_FORMATS}, got {transform_format!r}")
+    out = Path(output_dir)
+    fill = float(sitk.GetArrayViewFromImage(moving).min())  # io.resample's default: air for a CT
+    with staged_output_dir(out, overwrite) as tmp:
+        write_transform(result.transform, tmp / f"transform.{transform_format}")
+        write_elastix_transform(tmp / ELASTIX_PARAMETER_FILE, result.params, result.center, fixed, fill)
+        registered = result.registered if result.registered is not None else resample(moving, fixed, result.transform,
+                                                                                      default_value=fill)
+        save_volume(registered, tmp / "registered.nii.gz")
+        if dicom_references is not None:
+            write_spatial_registration(tmp / "registration.dcm", *dicom_references, invert_matrix(result.matrix),
+                                       software_version=__version__)
+        (tmp / "result.json").write_text(json.dumps(result.to_dict(), indent=2))
+        if qc:
+            p = result.params
+            title = (f"tx={p[0]:.2f} ty={p[1]:.2f} tz={p[2]:.2f} mm   rx={p[3]:.2f} ry={p[4]:.2f} rz={p[5]:.2f} deg"
+                     f"   confidence={result.confidence:.2f}{'  FLAGGED' if result.flagged else ''}")
+            qc_figure(fixed, moving, registered, tmp / "qc.png", title=title, transform=result.transform,
+                      names=names)
     return {name: out / name for name in OUTPUT_FILES if (out / name).exists()}
-
-
-def _make_parents(folder: Path) -> list[Path]:
-    """Create ``folder`` and its missing parents; return the ones created, deepest first."""
-    missing = []
-    for d in (folder, *folder.parents):
-        if d.exists():
-            break
-        missing.append(d)
-    folder.mkdir(parents=True, exist_ok=True)
-    return missing
-
-
-def _remove_made(made: list[Path]) -> None:
-    for d in made:  # deepest first; a folder something else has written into meanwhile stays
-        with contextlib.suppress(OSError):
-            d.rmdir()
-
-
-def _sibling_name(out: Path, tag: str) -> Path:
-    stem = out.name.encode()[:200].decode(errors="ignore")  # the name stays under the 255-byte limit
-    return out.with_name(f".{stem}.{tag}-{secrets.token_hex(4)}")
-
-
-def _new_sibling(out: Path, tag: str) -> Path:
-    """A new hidden folder next to ``out`` (``os.mkdir``: the permissions the final folder should have, unlike
-    ``tempfile.mkdtemp``'s 0700)."""
-    for _ in range(100):
-        path = _sibling_name(out, tag)
-        try:
-            path.mkdir()
-        except FileExistsError:
-            continue
-        return path
-    raise FileExistsError(errno.EEXIST, "could not create a temporary folder", str(out.parent))  # pragma: no cover
-
-
-@functools.cache
-def _renameat2() -> Any:
-    """glibc's ``renameat2`` (Linux), or ``None`` where the C library has none."""
-    try:
-        fn = ctypes.CDLL(None, use_errno=True).renameat2
-    except (OSError, AttributeError):
-        return None
-    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
-    fn.restype = ctypes.c_int
-    return fn
-
-
-_AT_FDCWD, _RENAME_NOREPLACE = -100, 1
-
-
-def _rename_noreplace(src: Path, dst: Path) -> None:
-    """Rename ``src`` to ``dst``, failing (``FileExistsError`` / ``OSError(ENOTEMPTY)``) where ``dst`` exists.
-
-    ``renameat2(RENAME_NOREPLACE)`` where the kernel and file system offer it; otherwise ``os.rename`` after a
-    check: POSIX ``rename`` replaces at most an empty directory, never one holding files.
-    """
-    fn = _renameat2()
-    if fn is not None:
-        if fn(_AT_FDCWD, os.fsencode(src), _AT_FDCWD, os.fsencode(dst), _RENAME_NOREPLACE) == 0:
-            return
-        err = ctypes.get_errno()
-        if err not in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP, errno.EOPNOTSUPP):
-            raise OSError(err, os.strerror(err), str(src), None, str(dst))
-    if os.path.lexists(dst):
-        raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(dst))
-    os.rename(src, dst)
-
-
-def _move_into_place(tmp: Path, out: Path, overwrite: bool) -> None:
-    """Publish the finished folder ``tmp`` as ``out`` without ever deleting files another process put there."""
-    aside = None
-    if out.is_dir() and not out.is_symlink():
-        if overwrite and any(out.iterdir()):
-            aside = _sibling_name(out, "old")
-            os.rename(out, aside)  # a new random name: nothing is replaced
-        else:
-            try:
-                out.rmdir()  # an empty folder (given, or made by hand); refused if it was filled meanwhile
-            except OSError as exc:
-                raise OutputExistsError(out, "another process wrote into it while this one ran; its files are "
-                                        "kept") from exc
-    try:
-        _rename_noreplace(tmp, out)
-    except BaseException as exc:
-        if aside is not None:
-            try:
-                _rename_noreplace(aside, out)  # put the old folder back
-            except OSError:
-                shutil.rmtree(aside, ignore_errors=True)  # another run replaced it, as both were asked to
-        if isinstance(exc, OSError) and exc.errno in (errno.EEXIST, errno.ENOTEMPTY):
-            raise OutputExistsError(out, "another process created it while this one ran; its files are kept") from exc
-        raise
-    if aside is not None:
-        shutil.rmtree(aside, ignore_errors=True)
 
 
 def register_files(
@@ -200,6 +132,9 @@ def register_files(
     cascade_steps: int | None = None,
     fixed_series_uid: str | None = None,
     moving_series_uid: str | None = None,
+    isocenter: Any = None,
+    reg: str = "auto",
+    transform_format: str = "tfm",
 ) -> dict[str, Path]:
     """Load both volumes, register them and write the standard outputs.
 
@@ -213,19 +148,93 @@ def register_files(
         refine, cascade_steps: as for :func:`~monai_rigidreg.registration.register`.
         overwrite, qc: as for :func:`write_outputs`.
         fixed_series_uid, moving_series_uid: DICOM series to read from a folder holding several.
+        isocenter: plan isocentre (LPS mm, CT coordinates) of the couch shifts; default: the CBCT's centre (its
+            coordinates taken as a CT point: a CBCT is reconstructed about the treatment isocentre), recorded in
+            ``result.json`` with where it came from. The CT's DICOM Patient Position orients the couch axes
+            (missing: head-first supine is assumed, with a warning, and recorded).
+        reg: ``registration.dcm``: one of :data:`REG_MODES`.
+        transform_format: ``"tfm"`` or ``"h5"`` (the ITK transform file).
 
     Returns:
         ``{file name: path}`` of the files written (the result itself is in ``result.json``).
     """
     check_register_inputs(fixed, moving, output_dir, overwrite, cascade_steps)
     check_distinct_inputs(fixed, moving, fixed_series_uid, moving_series_uid)
+    if transform_format not in TRANSFORM_FORMATS:
+        raise InputError(f"--transform-format must be one of {TRANSFORM_FORMATS}, got {transform_format!r}")
+    iso = None if isocenter is None else _point(isocenter, "isocenter")
+    refs, reg_warning = dicom_references(fixed, moving, fixed_series_uid, moving_series_uid, reg)
     fixed_img = load_volume(fixed, series_uid=fixed_series_uid)
     moving_img = load_volume(moving, series_uid=moving_series_uid)
     result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps)
-    paths = write_outputs(result, fixed_img, moving_img, output_dir, overwrite=overwrite, qc=qc)
+    result.provenance = registration_provenance(fixed, moving, fixed_series_uid, moving_series_uid,
+                                                bundle=getattr(registrar, "source", {}), device=str(registrar.device))
+    if reg_warning:
+        logger.warning("%s", reg_warning)
+        result.details.setdefault("warnings", []).append(reg_warning)
+    position = result.provenance["inputs"]["fixed"].get("patient_position") or None
+    source = "--isocenter" if iso is not None else "CBCT centre (default)"
+    if iso is None:
+        iso = Grid.from_sitk(moving_img).center()
+    result.couch_shift = {**couch_shifts(result.matrix, position, iso).to_dict(), "isocentre_source": source}
+    paths = write_outputs(result, fixed_img, moving_img, output_dir, overwrite=overwrite, qc=qc,
+                          names=(Path(fixed).name, Path(moving).name), transform_format=transform_format,
+                          dicom_references=refs)
     logger.info("registered %s to %s: %s (confidence %.2f)", moving, fixed,
                 ", ".join(f"{n}={v:.2f}" for n, v in zip(PARAM_NAMES, result.params)), result.confidence)
     return paths
+
+
+def dicom_references(fixed: str | Path, moving: str | Path, fixed_series_uid: str | None = None,
+                     moving_series_uid: str | None = None, reg: str = "auto"
+                     ) -> tuple[tuple[SeriesReference, SeriesReference] | None, str]:
+    """The two series a ``registration.dcm`` refers to, read from the DICOM headers before anything is registered.
+
+    Returns:
+        ``(references or None, why not)``: with ``reg="auto"`` the reason where two DICOM series cannot get a REG
+        (a shared or missing Frame of Reference UID: a warning for the result); inputs that are not DICOM get none,
+        said in the log. Never an invented relationship.
+
+    Raises:
+        InputError: ``reg="on"`` and the REG cannot be written (naming why), or an unknown ``reg``.
+    """
+    if reg not in REG_MODES:
+        raise InputError(f"reg must be one of {REG_MODES}, got {reg!r}")
+    if reg == "off":
+        return None, ""
+    why = ""
+    if not (Path(fixed).is_dir() and Path(moving).is_dir()):
+        why = ("no DICOM Spatial Registration (registration.dcm) written: it needs both inputs as DICOM series "
+               "(NIfTI and other files carry no UIDs to refer to); build one with "
+               "monai_rigidreg.dicom_reg.write_spatial_registration and user-given UIDs")
+        if reg == "auto":  # the ordinary case for file inputs: said once in the log, not a warning
+            logger.info("%s", why)
+            return None, ""
+    else:
+        try:
+            refs = (series_reference(fixed, fixed_series_uid), series_reference(moving, moving_series_uid))
+            if refs[0].frame_of_reference_uid == refs[1].frame_of_reference_uid:
+                raise InputError("the CT and the CBCT share one Frame of Reference UID "
+                                 f"({refs[0].frame_of_reference_uid}), so no registration between two frames can be "
+                                 "stored")
+            return refs, ""
+        except InputError as exc:
+            why = f"no DICOM Spatial Registration (registration.dcm) written: {exc}"
+    if reg == "on":
+        raise InputError(why.replace(" written:", " can be written:", 1))
+    return None, why
+
+
+def _point(value: Any, name: str) -> tuple[float, float, float]:
+    """``"x,y,z"`` or three numbers -> a point (mm); :class:`~monai_rigidreg.errors.InputError` otherwise."""
+    parts = value.replace(",", " ").split() if isinstance(value, str) else list(value)
+    try:
+        point = tuple(float(v) for v in parts)
+    except (TypeError, ValueError):
+        point = ()
+    if len(point) != 3 or not all(abs(v) < 1e6 for v in point):
+        raise InputError(f"{name} must be three numbers x,y,z in mm (CT coordinates, LPS), got {value!r}")
+    return point  # type: ignore[return-value]
 
 
 def check_register_inputs(

@@ -16,7 +16,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "register",
         help="register a CBCT (moving) to a planning CT (fixed)",
         description="Writes DIR/transform.tfm (ITK Euler3DTransform, fixed->moving, readable by 3D Slicer, ITK and "
-        "elastix), DIR/registered.nii.gz (the CBCT on the CT grid), DIR/result.json and DIR/qc.png.",
+        "SimpleITK; --transform-format h5 for transform.h5), DIR/TransformParameters.txt (the same for elastix's "
+        "transformix), DIR/registered.nii.gz (the CBCT on the CT grid), DIR/result.json (parameters, couch shifts "
+        "in IEC 61217 terms, confidence, audit trail), DIR/qc.png and, when both inputs are DICOM series with their "
+        "own frames of reference, DIR/registration.dcm (a DICOM Spatial Registration object).",
     )
     p.add_argument("--fixed", required=True, type=Path, help="planning CT: NIfTI, MHA, NRRD or a DICOM folder")
     p.add_argument("--moving", required=True, type=Path, help="CBCT: NIfTI, MHA, NRRD or a DICOM folder")
@@ -29,6 +32,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--moving-series-uid", default=None, help="DICOM series UID of the CBCT (default: largest)")
     p.add_argument("--no-qc", action="store_true", help="skip the QC figure")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
+    p.add_argument("--isocenter", default=None, metavar="X,Y,Z",
+                   help="plan isocentre in CT coordinates (LPS mm) for the couch shifts (default: the CBCT centre)")
+    p.add_argument("--reg", choices=("auto", "on", "off"), default="auto",
+                   help="write registration.dcm: auto (when both inputs are DICOM series with their own frames of "
+                   "reference; otherwise a warning says why not), on (required: refused before registering when it "
+                   "cannot be written), off")
+    p.add_argument("--transform-format", choices=("tfm", "h5"), default="tfm",
+                   help="ITK transform file: transform.tfm (text) or transform.h5 (HDF5)")
     p.add_argument("--fail-on-flag", action="store_true",
                    help="exit with status 3 when the result is flagged as a likely failure (default: 0; the outputs "
                    "are written either way and result.json says flagged)")
@@ -47,10 +58,16 @@ def run(args: argparse.Namespace) -> int:
     registrar = RigidRegistrar.from_bundle(args.bundle, device=args.device)
     paths = register_files(registrar, args.fixed, args.moving, args.output_dir, refine=args.refine,
                            overwrite=args.overwrite, qc=not args.no_qc, cascade_steps=args.cascade_steps,
-                           fixed_series_uid=args.fixed_series_uid, moving_series_uid=args.moving_series_uid)
+                           fixed_series_uid=args.fixed_series_uid, moving_series_uid=args.moving_series_uid,
+                           isocenter=args.isocenter, reg=args.reg, transform_format=args.transform_format)
     summary = json.loads(paths["result.json"].read_text())
+    couch = summary.get("couch_shift", {})
     print(json.dumps({"params": summary["params"], "confidence": round(summary["confidence"], 3),
-                      "flagged": summary["flagged"], "runtime_s": summary["runtime_s"]}, indent=2))
+                      "flagged": summary["flagged"], "runtime_s": summary["runtime_s"],
+                      "couch_shift_6dof": {k: round(v, 2) for k, v in couch.get("6dof", {}).items()},
+                      "couch_shift_3dof": {k: round(v, 2) for k, v in couch.get("3dof", {}).items()},
+                      "couch_patient_position": couch.get("patient_position"),
+                      "couch_isocentre": couch.get("isocentre_source")}, indent=2))
     for name, p in paths.items():
         print(f"  {name:18s} {p}")
     return 3 if args.fail_on_flag and summary["flagged"] else 0  # 3: cli.EXIT_FLAGGED

@@ -23,7 +23,7 @@ import torch
 from monai.data import MetaTensor
 from torch import nn
 
-from monai_rigidreg.bundle import load_bundle_network
+from monai_rigidreg.bundle import default_bundle_path, load_bundle_network
 from monai_rigidreg.classical import register_sitk
 from monai_rigidreg.confidence import (
     CONFIDENCE_THRESHOLD,
@@ -34,9 +34,11 @@ from monai_rigidreg.confidence import (
 from monai_rigidreg.device import resolve_device
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import (
+    LPS_TO_RAS,
     PARAM_NAMES,
     Grid,
     grid_points,
+    invert_matrix,
     params_to_matrix,
     params_to_sitk,
     recenter_params,
@@ -45,6 +47,7 @@ from monai_rigidreg.geometry import (
 from monai_rigidreg.io import as_image, check_distinct_inputs, grids_overlap, resample
 from monai_rigidreg.network_grid import NetworkGridSpec
 from monai_rigidreg.networks import cascade_register
+from monai_rigidreg.provenance import bundle_record
 from monai_rigidreg.transforms.grid import NormalizeHU, ResampleToNetworkGrid, resample_to_grid
 
 __all__ = ["RegistrationResult", "RigidRegistrar", "register", "check_intensities"]
@@ -66,6 +69,11 @@ class RegistrationResult:
         flagged: likely failure: check the QC figure.
         details: network-only parameters, refinement change, similarity before/after, swap consistency, and
             ``warnings`` (a list of sentences, e.g. an input whose intensities are not HU) where there are any.
+        provenance: the audit trail (:func:`~monai_rigidreg.provenance.registration_provenance`: inputs and their
+            DICOM UIDs, bundle and weights' SHA-256, software versions, device, time, command line), filled in by
+            :func:`~monai_rigidreg.outputs.register_files`; empty for in-memory images.
+        couch_shift: the correction in IEC 61217 couch terms at the isocentre
+            (:func:`~monai_rigidreg.couch.couch_shifts`), filled in by :func:`~monai_rigidreg.outputs.register_files`.
     """
 
     params: np.ndarray
@@ -75,6 +83,8 @@ class RegistrationResult:
     confidence: float = float("nan")
     flagged: bool = False
     details: dict[str, Any] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
+    couch_shift: dict[str, Any] = field(default_factory=dict)
 
     @property
     def transform(self) -> sitk.Euler3DTransform:
@@ -95,10 +105,18 @@ class RegistrationResult:
             "rotation R = Rz @ Rx @ Ry about center",
             "center": [float(v) for v in self.center],
             "matrix": [[float(v) for v in row] for row in self.matrix],
+            # the same transform the other way round (CBCT points -> CT points, LPS: what a DICOM Spatial
+            # Registration stores) and in RAS for 3D Slicer (the "to parent" matrix Slicer shows for the CBCT
+            # placed under the loaded transform.tfm)
+            "matrix_moving_to_fixed": [[float(v) for v in row] for row in invert_matrix(self.matrix)],
+            "matrix_moving_to_fixed_ras": [[float(v) for v in row]
+                                           for row in LPS_TO_RAS @ invert_matrix(self.matrix) @ LPS_TO_RAS],
             "runtime_s": {k: round(float(v), 4) for k, v in self.timings.items()},
             "confidence": float(self.confidence),
             "flagged": bool(self.flagged),
             "details": _jsonable(self.details),
+            "provenance": _jsonable(self.provenance),
+            **({"couch_shift": _jsonable(self.couch_shift)} if self.couch_shift else {}),
         }
 
 
@@ -156,6 +174,7 @@ class RigidRegistrar:
         self.network = network.to(self.device).eval()
         self.cascade_steps = _check_steps(cascade_steps)
         self.hu_range = hu_range
+        self.source: dict[str, Any] = {}  # the bundle and weights it came from (from_bundle), for the audit trail
         self._resampler = ResampleToNetworkGrid(self.network_size, self.network_spacing, padding_value=hu_range[0])
         self._normalize = NormalizeHU(a_min=hu_range[0], a_max=hu_range[1])
 
@@ -182,7 +201,9 @@ class RigidRegistrar:
         """
         net, settings = load_bundle_network(bundle, device=resolve_device(device))
         settings.update(overrides)
-        return cls(net, device=device, **settings)
+        registrar = cls(net, device=device, **settings)
+        registrar.source = bundle_record(bundle if bundle is not None else default_bundle_path())
+        return registrar
 
     # -- stages ------------------------------------------------------------------------------------------------
     def network_grid(self, fixed: sitk.Image, moving: sitk.Image | None = None) -> Grid:

@@ -32,10 +32,14 @@ def smooth_random_image(size_xyz, spacing, origin, direction, seed=0, sigma_mm=3
     return img
 
 
-def write_dicom_series(image: sitk.Image, directory: str | Path, series_uid: str, shuffle_seed: int = 0) -> None:
+def write_dicom_series(image: sitk.Image, directory: str | Path, series_uid: str, shuffle_seed: int = 0,
+                       frame_of_reference_uid: str | None = None, study_uid: str | None = None,
+                       modality: str = "CT") -> None:
     """Write ``image`` as a CT DICOM series into ``directory``, one file per slice, file names in random order.
 
     A plain function, so that any test builds its DICOM input with ``from conftest import write_dicom_series``.
+    ``frame_of_reference_uid`` (0020|0052) is written only when given; ``study_uid`` (0020|000d) defaults to a
+    fixed UID shared by every series written here; ``modality`` (0008|0060) defaults to ``"CT"``.
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -49,14 +53,15 @@ def write_dicom_series(image: sitk.Image, directory: str | Path, series_uid: str
     for k in range(img16.GetDepth()):
         sl = img16[:, :, k]
         for tag, value in [
-            ("0008|0060", "CT"),
+            ("0008|0060", modality),
             ("0008|0021", time.strftime("%Y%m%d")),
-            ("0020|000d", "1.2.826.0.1.3680043.2.1125.1"),
+            ("0020|000d", "1.2.826.0.1.3680043.2.1125.1" if study_uid is None else study_uid),
             ("0020|000e", series_uid),
             ("0020|0037", iop),
             ("0020|0032", "\\".join(f"{v:.6f}" for v in img16.TransformIndexToPhysicalPoint((0, 0, k)))),
             ("0020|0013", str(k + 1)),
             ("0018|0050", str(img16.GetSpacing()[2])),
+            *([] if frame_of_reference_uid is None else [("0020|0052", frame_of_reference_uid)]),
         ]:
             sl.SetMetaData(tag, value)
         writer.SetFileName(str(directory / f"img_{order[k]:04d}.dcm"))

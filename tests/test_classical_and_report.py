@@ -14,7 +14,7 @@ from monai_rigidreg.classical import elastix_available, register_elastix, regist
 from monai_rigidreg.evaluation import CaseResult, format_report, motion_conditions, summarize, write_report
 from monai_rigidreg.geometry import Grid, grid_points, params_to_sitk, target_registration_error
 from monai_rigidreg.io import resample
-from monai_rigidreg.qc import qc_figure
+from monai_rigidreg.qc import edge_letters, qc_figure
 
 TRUE = [6.0, -4.0, 3.0, 5.0, -3.0, 8.0]
 
@@ -99,3 +99,25 @@ def test_qc_figure_writes_png_and_refuses_overwrite(tmp_path, pair):
     assert img.GetSize()[0] > 800
     with pytest.raises(FileExistsError):
         qc_figure(fixed, moving, registered, p)
+
+
+def test_qc_orientation_letters_follow_the_direction_cosines():
+    img = sitk.Image(4, 4, 4, sitk.sitkFloat32)
+    axial, coronal, sagittal = edge_letters(img)  # identity LPS direction
+    assert (axial["left"], axial["right"], axial["top"], axial["bottom"]) == ("R", "L", "A", "P")
+    assert (coronal["left"], coronal["right"], coronal["top"], coronal["bottom"]) == ("R", "L", "S", "I")
+    assert (sagittal["left"], sagittal["right"], sagittal["top"], sagittal["bottom"]) == ("A", "P", "S", "I")
+    img.SetDirection((-1, 0, 0, 0, -1, 0, 0, 0, 1))  # stored the RAS way: x runs to the right, y anterior
+    axial = edge_letters(img)[0]
+    assert (axial["left"], axial["right"], axial["top"], axial["bottom"]) == ("L", "R", "P", "A")
+
+
+def test_qc_figure_with_transform_outlines_the_field_of_view(tmp_path, pair):
+    fixed, moving, center = pair
+    tfm = params_to_sitk(TRUE, center)
+    registered = resample(moving, fixed, tfm)
+    p = qc_figure(fixed, moving, registered, tmp_path / "qc.png", title="test", transform=tfm,
+                  names=("ct.nii.gz", "cbct.nii.gz"))
+    arr = sitk.GetArrayFromImage(sitk.ReadImage(str(p)))
+    yellow = (arr[..., 0] > 200) & (arr[..., 1] > 200) & (arr[..., 2] < 80)
+    assert yellow.sum() > 500  # orientation letters and the field-of-view outline are drawn in yellow

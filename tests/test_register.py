@@ -49,7 +49,7 @@ def test_refine_recovers_known_motion_and_outputs_are_consistent(pair, small_reg
     assert {"preprocess", "network", "refine", "confidence", "resample", "total"} <= set(res.timings)
     assert "change_tre_mm" in res.details["refine"]
     paths = write_outputs(res, fixed, moving, tmp_path / "out")
-    assert set(paths) == {"transform.tfm", "registered.nii.gz", "result.json", "qc.png"}
+    assert set(paths) == {"transform.tfm", "TransformParameters.txt", "registered.nii.gz", "result.json", "qc.png"}
     # the transform file, read by plain SimpleITK and applied with sitk.Resample, reproduces registered.nii.gz
     tfm = sitk.ReadTransform(str(paths["transform.tfm"]))
     again = sitk.Resample(moving, fixed, tfm, sitk.sitkLinear, float(sitk.GetArrayViewFromImage(moving).min()))
@@ -263,7 +263,36 @@ def test_a_folder_with_both_series_is_refused_until_the_series_are_named(pair, t
     assert not out.exists()
     assert main(["register", "--fixed", str(both), "--moving", str(both), "--output-dir", str(out),
                  "--fixed-series-uid", "1.2.3.4.100", "--moving-series-uid", "1.2.3.4.200", "--no-qc"]) == 0
-    assert (out / "result.json").is_file()
+    prov = json.loads((out / "result.json").read_text())["provenance"]
+    assert prov["inputs"]["fixed"]["series_uid"] == "1.2.3.4.100" and prov["inputs"]["fixed"]["format"] == "dicom"
+    assert prov["inputs"]["moving"]["series_uid"] == "1.2.3.4.200"
+    assert prov["inputs"]["fixed"]["study_uid"] == "1.2.826.0.1.3680043.2.1125.1"
     # the same file on both sides, through the Python API too
     with pytest.raises(InputError, match="same file"):
         register(pair["fixed"], pair["fixed"], model=small_registrar)
+
+
+def test_result_json_audit_trail_and_inverse_matrices(fast_pair, tmp_path):
+    """``result.json`` of a CLI run with the shipped bundle: inputs, bundle version and weights' SHA-256, software
+    versions, time, command line; the moving->fixed matrix (LPS and RAS) is the inverse of the fixed->moving one."""
+    import hashlib
+
+    from monai_rigidreg.bundle import default_bundle_path
+
+    out = tmp_path / "out"
+    assert main(["register", "--fixed", str(fast_pair["fixed"]), "--moving", str(fast_pair["moving"]),
+                 "--output-dir", str(out), "--no-qc", "--device", "cpu"]) == 0
+    result = json.loads((out / "result.json").read_text())
+    prov = result["provenance"]
+    weights = default_bundle_path() / "models" / "model.pt"
+    assert prov["bundle"]["weights_sha256"] == hashlib.sha256(weights.read_bytes()).hexdigest()
+    assert prov["bundle"]["version"] == json.loads((default_bundle_path() / "configs" / "metadata.json")
+                                                   .read_text())["version"]
+    assert prov["inputs"]["fixed"]["path"].endswith(str(fast_pair["fixed"]).split("/")[-1])
+    assert {"monai_rigidreg", "torch", "monai", "SimpleITK"} <= set(prov["software"])
+    assert prov["device"] == "cpu" and prov["timestamp_utc"].endswith("+00:00") and prov["command_line"]
+    m = np.array(result["matrix"])
+    np.testing.assert_allclose(np.array(result["matrix_moving_to_fixed"]) @ m, np.eye(4), atol=1e-9)
+    flip = np.diag([-1.0, -1.0, 1.0, 1.0])
+    np.testing.assert_allclose(np.array(result["matrix_moving_to_fixed_ras"]),
+                               flip @ np.linalg.inv(m) @ flip, atol=1e-9)

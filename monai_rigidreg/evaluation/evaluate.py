@@ -21,6 +21,7 @@ from tqdm.auto import tqdm
 
 from monai_rigidreg.classical import elastix_available, register_elastix, register_sitk
 from monai_rigidreg.errors import InputError
+from monai_rigidreg.evaluation.html_report import DEFAULT_MAX_OVERLAYS, OVERLAY_DIR, OverlayGallery, write_html_report
 from monai_rigidreg.evaluation.report import CaseResult, format_report, summarize, write_report
 from monai_rigidreg.geometry import (
     Grid,
@@ -141,19 +142,24 @@ def evaluate_datalist(
     key: str | None = None,
     registrar: Any = None,
     progress: bool = True,
+    html: bool = True,
+    max_overlays: int = DEFAULT_MAX_OVERLAYS,
 ) -> dict[str, Any]:
     """Register every case with every method and report.
 
     Args:
         datalist: MONAI datalist JSON with ``fixed``, ``moving`` and ground truth (``params``/``matrix``/``center``).
         methods: any of :data:`METHODS`.
-        output_dir: where ``cases.csv``, ``summary.json`` and ``report.md`` go (nothing written if ``None``).
+        output_dir: where ``cases.csv``, ``summary.json``, ``report.md`` and ``report.html`` go (nothing written
+            if ``None``).
         bundle: bundle directory for the network methods (default: the shipped one).
         device: for the network.
         max_cases: evaluate only the first N cases.
         key: datalist key (default: ``test``, ``validation`` or ``training``, the first present).
         registrar: a ready :class:`~monai_rigidreg.registration.RigidRegistrar` (overrides ``bundle``).
         progress: show a progress bar.
+        html: also write ``report.html``, with overlays in ``report_files/`` drawn while each case is loaded.
+        max_overlays: overlays for cases that neither failed nor were flagged (those always get one).
 
     Returns:
         ``{"summary": ..., "report": markdown text, "cases": [CaseResult, ...], "paths": {...}}``.
@@ -161,27 +167,46 @@ def evaluate_datalist(
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise InputError(f"unknown method(s) {unknown}; choose from {METHODS}")
-    if max_cases is not None and (isinstance(max_cases, bool) or not isinstance(max_cases, int) or max_cases < 1):
+    if max_cases is not None and (isinstance(max_cases, bool) or not isinstance(max_cases, (int, np.integer))
+                                  or max_cases < 1):
         raise InputError(f"max_cases must be a whole number >= 1, got {max_cases!r}")
+    if isinstance(max_overlays, bool) or not isinstance(max_overlays, (int, np.integer)) or max_overlays < 0:
+        raise InputError(f"max_overlays must be a whole number >= 0, got {max_overlays!r}")
     items, _ = load_datalist(datalist, key)
     if max_cases is not None:
-        items = items[:max_cases]
+        items = items[: int(max_cases)]
     if any(m.startswith("network") for m in methods) and registrar is None:
         registrar = RigidRegistrar.from_bundle(bundle, device=device)
     if "elastix" in methods:
         if not elastix_available():
             raise InputError("method 'elastix' needs itk-elastix: pip install 'monai-rigidreg[elastix]'")
 
+    gallery = (OverlayGallery(Path(output_dir) / OVERLAY_DIR, methods, max_others=max_overlays)
+               if html and output_dir is not None else None)
     cases: list[CaseResult] = []
-    for case in tqdm(iter_cases(items), total=len(items), desc="evaluate", disable=not progress, unit="case"):
-        for method in methods:
-            pred, runtime, extra = _run_method(method, case.fixed, case.moving, case.fov, case.center, registrar)
-            tre = float(target_registration_error(pred, case.truth, case.points, center=case.center))
-            cases.append(CaseResult(case.case_id, method, case.truth.tolist(), np.asarray(pred).tolist(), tre,
-                                    runtime, str(case.item.get("group", "")), extra))
+    try:
+        for case in tqdm(iter_cases(items), total=len(items), desc="evaluate", disable=not progress, unit="case"):
+            first = len(cases)
+            for method in methods:
+                pred, runtime, extra = _run_method(method, case.fixed, case.moving, case.fov, case.center, registrar)
+                tre = float(target_registration_error(pred, case.truth, case.points, center=case.center))
+                cases.append(CaseResult(case.case_id, method, case.truth.tolist(), np.asarray(pred).tolist(), tre,
+                                        runtime, str(case.item.get("group", "")), extra))
+            if gallery is not None:  # drawn now, while the volumes are loaded
+                gallery.add(case.fixed, case.moving, case.center, [(i, cases[i]) for i in range(first, len(cases))])
+    except BaseException:
+        if gallery is not None:  # a failed (or interrupted) run leaves no partial output
+            gallery.discard()
+        raise
+    if gallery is not None:
+        gallery.finish()
     summary = summarize(cases)
     report = format_report(summary)
     paths = write_report(cases, output_dir) if output_dir is not None else {}
+    if gallery is not None:
+        paths["html"] = write_html_report(cases, Path(output_dir) / "report.html", summary=summary,
+                                          overlays=gallery.images, datalist=datalist,
+                                          omitted_overlays=gallery.omitted)
     return {"summary": summary, "report": report, "cases": cases, "paths": paths}
 
 

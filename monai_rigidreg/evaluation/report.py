@@ -12,7 +12,8 @@ import numpy as np
 
 from monai_rigidreg.geometry import PARAM_NAMES, parameter_errors
 
-__all__ = ["CaseResult", "motion_conditions", "summarize", "format_report", "write_report", "SUCCESS_TRE_MM"]
+__all__ = ["CaseResult", "ReportTable", "motion_conditions", "summarize", "report_tables", "format_report",
+           "write_report", "SUCCESS_TRE_MM"]
 
 SUCCESS_TRE_MM = 2.0
 """A registration succeeds when its mean target registration error is below this (mm)."""
@@ -123,38 +124,59 @@ def _fmt(ms: tuple[float, float]) -> str:
     return f"{ms[0]:.2f} ± {ms[1]:.2f}"
 
 
-def format_report(summary: dict) -> str:
-    """Markdown text of Table 1 (translations, mm), Table 2 (rotations, degrees) and the overall figures."""
-    lines = ["Table 1. Mean absolute translational errors (mean ± SD, mm)", "",
-             "| method | motion condition | n | Δtx | Δty | Δtz |", "|---|---|---|---|---|---|"]
+@dataclass
+class ReportTable:
+    """One table of the report, its cells already formatted (shared by ``report.md`` and ``report.html``).
+
+    Attributes:
+        key: short identifier (``translations``, ``rotations``, ``overall``, ``flag``).
+        title: the caption line; header: column names; rows: one list of cell texts per row.
+    """
+
+    key: str
+    title: str
+    header: list[str]
+    rows: list[list[str]]
+
+
+def report_tables(summary: dict) -> list[ReportTable]:
+    """Table 1 (translations, mm), Table 2 (rotations, degrees), the overall figures and, where a method has a
+    confidence check, the failure flag, from :func:`summarize`'s output."""
+    t1 = ReportTable("translations", "Table 1. Mean absolute translational errors (mean ± SD, mm)",
+                     ["method", "motion condition", "n", "Δtx", "Δty", "Δtz"], [])
+    t2 = ReportTable("rotations", "Table 2. Mean absolute rotational errors (mean ± SD, degrees)",
+                     ["method", "motion condition", "n", "Δθx", "Δθy", "Δθz"], [])
     for method, s in summary.items():
         for cond, c in s["conditions"].items():
-            if cond == CONDITION_ROTATION_X:
-                continue
-            lines.append(f"| {method} | {cond} | {c['n']} | " + " | ".join(_fmt(c["mae"][k]) for k in PARAM_NAMES[:3])
-                         + " |")
-    lines += ["", "Table 2. Mean absolute rotational errors (mean ± SD, degrees)", "",
-              "| method | motion condition | n | Δθx | Δθy | Δθz |", "|---|---|---|---|---|---|"]
-    for method, s in summary.items():
-        for cond, c in s["conditions"].items():
-            if cond == CONDITION_TRANSLATION:
-                continue
-            lines.append(f"| {method} | {cond} | {c['n']} | " + " | ".join(_fmt(c["mae"][k]) for k in PARAM_NAMES[3:])
-                         + " |")
-    lines += ["", f"Overall (success: mean TRE < {SUCCESS_TRE_MM:g} mm)", "",
-              "| method | n | mean TRE (mm) | median TRE (mm) | success rate | median time (s) |",
-              "|---|---|---|---|---|---|"]
-    for method, s in summary.items():
-        lines.append(f"| {method} | {s['n']} | {s['tre_mean_mm']:.2f} | {s['tre_median_mm']:.2f} | "
-                     f"{100 * s['success_rate']:.0f}% | {s['time_median_s']:.2f} |")
+            if cond != CONDITION_ROTATION_X:
+                t1.rows.append([method, cond, str(c["n"]), *(_fmt(c["mae"][k]) for k in PARAM_NAMES[:3])])
+            if cond != CONDITION_TRANSLATION:
+                t2.rows.append([method, cond, str(c["n"]), *(_fmt(c["mae"][k]) for k in PARAM_NAMES[3:])])
+    overall = ReportTable("overall", f"Overall (success: mean TRE < {SUCCESS_TRE_MM:g} mm)",
+                          ["method", "n", "mean TRE (mm)", "median TRE (mm)", "success rate", "median time (s)"],
+                          [[method, str(s["n"]), f"{s['tre_mean_mm']:.2f}", f"{s['tre_median_mm']:.2f}",
+                            f"{100 * s['success_rate']:.0f}%", f"{s['time_median_s']:.2f}"]
+                           for method, s in summary.items()])
+    tables = [t1, t2, overall]
     flags = {m: s["flag"] for m, s in summary.items() if "flag" in s}
     if flags:
-        lines += ["", "Failure flag (confidence < 0.5): failures caught and false alarms", "",
-                  "| method | failures | flagged failures | successes | flagged successes |", "|---|---|---|---|---|"]
-        for method, f in flags.items():
-            lines.append(f"| {method} | {f['failures']} | {f['failures_flagged']} | {f['successes']} | "
-                         f"{f['successes_flagged']} |")
-    return "\n".join(lines) + "\n"
+        tables.append(ReportTable(
+            "flag", "Failure flag (confidence < 0.5): failures caught and false alarms",
+            ["method", "failures", "flagged failures", "successes", "flagged successes"],
+            [[method, str(f["failures"]), str(f["failures_flagged"]), str(f["successes"]),
+              str(f["successes_flagged"])] for method, f in flags.items()]))
+    return tables
+
+
+def format_report(summary: dict) -> str:
+    """Markdown text of :func:`report_tables`: Table 1 (translations, mm), Table 2 (rotations, degrees), the
+    overall figures and the failure flag."""
+    blocks = []
+    for t in report_tables(summary):
+        lines = [t.title, "", "| " + " | ".join(t.header) + " |", "|" + "---|" * len(t.header)]
+        lines += ["| " + " | ".join(row) + " |" for row in t.rows]
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks) + "\n"
 
 
 def write_report(cases: Sequence[CaseResult], output_dir: str | Path) -> dict[str, Path]:

@@ -30,6 +30,7 @@ import json
 import math
 import os
 import platform
+import shutil
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -43,9 +44,9 @@ import monai_rigidreg
 from monai_rigidreg.device import resolve_device
 from monai_rigidreg.errors import OutputExistsError
 from monai_rigidreg.geometry import params_to_matrix
-from monai_rigidreg.io import check_output_dir
+from monai_rigidreg.io import check_output_dir, make_dirs, remove_made_dirs
 from monai_rigidreg.simulation.config import SimulationConfig, make_config
-from monai_rigidreg.simulation.phantoms import PHANTOMS
+from monai_rigidreg.simulation.phantoms import PHANTOMS, load_ct
 from monai_rigidreg.simulation.protocols import MotionCase, protocol_cases
 from monai_rigidreg.simulation.volumes import _seed, simulate_case, write_simct
 
@@ -170,8 +171,36 @@ def simulate_dataset(
     )
     out = Path(output_dir).expanduser()
     _prepare_output(out, cfg, overwrite)
-    out.mkdir(parents=True, exist_ok=True)
     dev = resolve_device(cfg.device)
+    if cfg.phantom not in PHANTOMS:
+        # read once here (again per object later) so that a corrupt, 2D or non-finite CT is refused before anything
+        # is written
+        load_ct(cfg.phantom)
+    fresh = not out.exists() or not any(out.iterdir())
+    made = make_dirs(out)
+    try:
+        return _simulate_into(out, cfg, dev, overwrite, progress)
+    except BaseException:
+        if fresh and not _finished_volumes(out):  # nothing worth resuming: leave no trace of this run
+            if made:
+                shutil.rmtree(out, ignore_errors=True)
+                remove_made_dirs(made[1:])
+            else:
+                for child in list(out.iterdir()):
+                    if child.is_dir():
+                        shutil.rmtree(child, ignore_errors=True)
+                    else:
+                        child.unlink(missing_ok=True)
+        raise
+
+
+def _finished_volumes(out: Path) -> list[Path]:
+    """The Sim-CTs and CBCTs of ``out`` that are complete (written under their final names)."""
+    return [p for p in out.glob("*/*.nii.gz") if not p.name.startswith(".")]
+
+
+def _simulate_into(out: Path, cfg: SimulationConfig, dev: torch.device, overwrite: bool, progress: bool) -> Path:
+    """The writing part of :func:`simulate_dataset`, into the checked folder ``out``."""
     meta = {"config": cfg.identity(), "runtime": {"device": str(dev), "workers": cfg.workers}, "versions": _versions()}
     (out / "simulation.json").write_text(json.dumps(meta, indent=2))
 
@@ -221,6 +250,10 @@ def simulate_dataset(
     _OBJECTS.clear()
     path = out / "dataset.json"
     tmp = out / ".dataset.json.tmp"
-    tmp.write_text(json.dumps({"name": "monai-rigidreg simulated CBCT/Sim-CT pairs", "training": items}, indent=1))
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(json.dumps({"name": "monai-rigidreg simulated CBCT/Sim-CT pairs", "training": items},
+                                  indent=1))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path

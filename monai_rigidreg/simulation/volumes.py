@@ -187,8 +187,11 @@ def save_fov_mask(fov: torch.Tensor, grid: Grid, path: str | Path) -> Path:
 def _write_atomic(img: sitk.Image, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".tmp-{os.getpid()}-{path.name}")
-    sitk.WriteImage(img, str(tmp), True)
-    os.replace(tmp, path)
+    try:
+        sitk.WriteImage(img, str(tmp), True)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)  # after a failure or an interrupt: no half-written file left behind
     return path
 
 

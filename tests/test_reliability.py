@@ -1,0 +1,441 @@
+"""Reliability at the boundary: every bad input gets one clear line and a documented exit status, nothing is left
+behind or replaced (failures, Ctrl-C, SIGTERM, two runs into one folder), and geometry is never silently wrong.
+
+Small volumes throughout (the register command runs a random-weight network on a 32^3 grid); the bundle is run in a
+subprocess twice (MONAI's own command line).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+import torch
+from conftest import TINY_SIM, write_dicom_series
+
+from monai_rigidreg import outputs, registration, staging
+from monai_rigidreg.cli import EXIT_CODES, main
+from monai_rigidreg.errors import InputError, OutputExistsError, Terminated
+from monai_rigidreg.io import list_dicom_series, load_volume
+from monai_rigidreg.networks import DualEncoderRigidNet
+from monai_rigidreg.outputs import DEFAULT_OUTPUT_FILES, write_outputs
+from monai_rigidreg.registration import RigidRegistrar
+
+ROOT = Path(__file__).resolve().parents[1]
+BUNDLE = ROOT / "bundles" / "cbct_ct_rigid"
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    from monai_rigidreg.simulation import simulate_pair
+
+    return simulate_pair(tmp_path_factory.mktemp("pair"), phantom="shepp-logan-asym", params=[4, -3, 2, 2, -1, 3],
+                         seed=3, device="cpu", **{k: v for k, v in TINY_SIM.items() if k != "preset"})
+
+
+@pytest.fixture(scope="module")
+def small_registrar():
+    torch.manual_seed(0)
+    net = DualEncoderRigidNet(channels=(4, 8, 8, 8), pool_size=2)
+    return RigidRegistrar(net, network_size=(32, 32, 32), network_spacing=(8.0, 8.0, 8.0), cascade_steps=1,
+                          device="cpu")
+
+
+@pytest.fixture
+def with_small_network(monkeypatch, small_registrar):
+    """The register command with the small network instead of the shipped bundle."""
+    monkeypatch.setattr(RigidRegistrar, "from_bundle", classmethod(lambda cls, *a, **k: small_registrar))
+
+
+def listing(root: Path) -> list[str]:
+    """Every path under ``root`` (hidden ones included), relative, sorted."""
+    return sorted(str(p.relative_to(root)) for p in Path(root).rglob("*"))
+
+
+def run_cli(capsys, args: list[str]) -> tuple[int, str]:
+    code = main([str(a) for a in args])
+    return code, capsys.readouterr().err
+
+
+def last_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    return lines[-1] if lines else ""
+
+
+def constant_like(image: sitk.Image, value: float = 0.0) -> sitk.Image:
+    out = sitk.Image(image.GetSize(), sitk.sitkFloat32)
+    out.CopyInformation(image)
+    return out + value
+
+
+def in_main_thread() -> None:
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals reach the main thread only")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# register: bad input -> exit 2, one line naming the problem, nothing written or changed
+# ---------------------------------------------------------------------------------------------------------------
+def test_register_refuses_bad_input_with_one_line_and_no_debris(pair, tmp_path, with_small_network, capsys):
+    work = tmp_path / "work"
+    work.mkdir()
+    a_file = work / "a_file.txt"
+    a_file.write_text("keep me")
+    zeros = work / "zeros.nii.gz"
+    sitk.WriteImage(constant_like(load_volume(pair["moving"])), str(zeros))
+    before = listing(work)
+    base = ["register", "--fixed", pair["fixed"], "--moving", pair["moving"]]
+    cases = [
+        (base + ["--output-dir", a_file, "--overwrite"], "a_file.txt: already exists; refusing to overwrite it (it is "
+                                                         "a file, not a folder"),
+        (base + ["--output-dir", a_file / "out"], "a_file.txt: cannot create the output folder: this parent of it "
+                                                  "is a file"),
+        (base + ["--output-dir", work / ("x" * 256)], "an output folder name is longer than 255 bytes"),
+        (base + ["--output-dir", work / "out", "--cascade-steps", "-1"], "cascade_steps must be a whole number >= 1, "
+                                                                         "got -1"),
+        (["register", "--fixed", work / "missing.nii.gz", "--moving", pair["moving"], "--output-dir", work / "out"],
+         "missing.nii.gz: no such file or directory (the fixed image)"),
+        (["register", "--fixed", pair["fixed"], "--moving", zeros, "--output-dir", work / "out"],
+         "the moving (CBCT) image is constant (every voxel is 0): there is nothing to register"),
+    ]
+    for args, message in cases:
+        code, err = run_cli(capsys, args)
+        assert code == 2, (args, err)
+        assert message in last_line(err) and last_line(err).startswith("monai-rigidreg register: error: "), err
+        assert "Traceback" not in err
+        assert listing(work) == before, args  # no output, no temporary folder
+        assert a_file.read_text() == "keep me"
+
+
+def test_bad_device_strings_are_refused_before_any_work(pair, tmp_path, capsys):
+    out = tmp_path / "out"
+    for args in (["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir", out],
+                 ["demo", "--output-dir", out]):
+        code, err = run_cli(capsys, [*args, "--device", "gpu7"])
+        assert code == 2 and "device 'gpu7' is not a device name (use auto, cpu, cuda or cuda:N)" in last_line(err)
+        assert "Traceback" not in err
+    datalist = tmp_path / "one.json"
+    datalist.write_text(json.dumps({"training": [{"fixed": pair["fixed"], "moving": pair["moving"],
+                                                  "params": [0.0] * 6}]}))
+    code, err = run_cli(capsys, ["evaluate", "--datalist", datalist, "--output-dir", out, "--device", "gpu7"])
+    assert code == 2 and "'gpu7' is not a device name" in last_line(err)
+    assert listing(tmp_path) == ["one.json"]
+
+
+def test_constant_inputs_are_refused_naming_which(pair, small_registrar):
+    fixed, moving = load_volume(pair["fixed"]), load_volume(pair["moving"])
+    with pytest.raises(InputError, match=r"the moving \(CBCT\) image is constant \(every voxel is 0\)"):
+        small_registrar(fixed, constant_like(moving))
+    with pytest.raises(InputError, match=r"the fixed \(CT\) image is constant \(every voxel is -1000\)"):
+        small_registrar(constant_like(fixed, -1000.0), moving)
+
+
+@pytest.mark.parametrize(("pixel", "lo", "hi"), [(sitk.sitkUInt8, 0, 255), (sitk.sitkInt8, -128, 127)])
+def test_integer_cbct_registers_with_a_warning_naming_its_range(pair, tmp_path, with_small_network, capsys, caplog,
+                                                               pixel, lo, hi):
+    small = tmp_path / "cbct_preview.nii.gz"
+    sitk.WriteImage(sitk.Cast(sitk.RescaleIntensity(load_volume(pair["moving"]), lo, hi), pixel), str(small))
+    out = tmp_path / "out"
+    with caplog.at_level("WARNING", logger="monai_rigidreg.registration"):
+        code, err = run_cli(capsys, ["register", "--fixed", pair["fixed"], "--moving", small, "--output-dir", out])
+    assert code == 0, err
+    expected = f"the moving (CBCT) image's intensities range from {lo} to {hi}, which is not HU"
+    assert expected in caplog.text
+    result = json.loads((out / "result.json").read_text())
+    assert [w for w in result["details"]["warnings"] if expected in w]
+    assert not any("fixed" in w for w in result["details"]["warnings"])  # the CT is in HU
+
+
+def test_flagged_result_exits_0_or_3_with_fail_on_flag(pair, tmp_path, with_small_network, capsys, monkeypatch):
+    args = ["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--no-qc"]
+    monkeypatch.setattr(registration, "CONFIDENCE_THRESHOLD", 1.01)  # every result flagged
+    assert run_cli(capsys, [*args, "--output-dir", tmp_path / "a"])[0] == 0
+    assert json.loads((tmp_path / "a" / "result.json").read_text())["flagged"] is True
+    assert run_cli(capsys, [*args, "--output-dir", tmp_path / "b", "--fail-on-flag"])[0] == 3
+    assert (tmp_path / "b" / "transform.tfm").is_file()  # the outputs are written either way
+    monkeypatch.setattr(registration, "CONFIDENCE_THRESHOLD", -1.0)  # nothing flagged
+    assert run_cli(capsys, [*args, "--output-dir", tmp_path / "c", "--fail-on-flag"])[0] == 0
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Nothing lost, nothing left behind: concurrent runs, overwrite, Ctrl-C, SIGTERM
+# ---------------------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def result(pair, small_registrar):
+    fixed, moving = load_volume(pair["fixed"]), load_volume(pair["moving"])
+    return small_registrar(fixed, moving, assess=False), fixed, moving
+
+
+@pytest.mark.parametrize("start", ["absent", "empty"])
+@pytest.mark.parametrize("rename", ["renameat2", "fallback"])
+def test_a_folder_another_run_filled_meanwhile_is_never_replaced(result, tmp_path, monkeypatch, start, rename):
+    res, fixed, moving = result
+    if rename == "fallback":
+        monkeypatch.setattr(staging, "_renameat2", lambda: None)
+    else:
+        assert staging._renameat2() is not None  # Linux/glibc: the kernel refuses to replace
+    out = tmp_path / "new" / "out"
+    if start == "empty":
+        out.mkdir(parents=True)
+
+    def other_run_finishes_first(*args, **kwargs):  # the QC figure is the last step before the final move
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "result.json").write_text("the other run's result")
+
+    monkeypatch.setattr(outputs, "qc_figure", other_run_finishes_first)
+    with pytest.raises(OutputExistsError, match="another process"):
+        write_outputs(res, fixed, moving, out)
+    assert listing(tmp_path) == ["new", "new/out", "new/out/result.json"]
+    assert (out / "result.json").read_text() == "the other run's result"
+
+
+def test_two_runs_into_one_new_folder_one_wins_and_nothing_is_deleted(result, tmp_path, monkeypatch):
+    res, fixed, moving = result
+    out = tmp_path / "out"
+    barrier = threading.Barrier(2)
+
+    def qc(fixed, moving, registered, path, **kwargs):  # both runs have checked the folder and written everything
+        barrier.wait(timeout=60)
+        Path(path).write_bytes(b"png")
+
+    monkeypatch.setattr(outputs, "qc_figure", qc)
+    ends: list[str] = []
+
+    def run() -> None:
+        try:
+            write_outputs(res, fixed, moving, out)
+            ends.append("written")
+        except OutputExistsError:
+            ends.append("refused")
+
+    threads = [threading.Thread(target=run) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert sorted(ends) == ["refused", "written"]
+    assert listing(tmp_path) == sorted(["out", *(f"out/{n}" for n in DEFAULT_OUTPUT_FILES)])
+    assert json.loads((out / "result.json").read_text())["params"]["tx"] == pytest.approx(res.params[0])
+
+
+def test_overwrite_replaces_the_old_folder_only_once_the_new_one_is_complete(result, tmp_path, monkeypatch):
+    res, fixed, moving = result
+    out = tmp_path / "out"
+    write_outputs(res, fixed, moving, out, qc=False)
+    umask = os.umask(0o022)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o777 & ~umask  # a normal folder, not tempfile.mkdtemp's 0700
+    old = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(outputs, "qc_figure", disk_full)
+    with pytest.raises(OSError, match="No space left"):
+        write_outputs(res, fixed, moving, out, overwrite=True)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == old  # the old folder is untouched
+    assert listing(tmp_path) == sorted(["out", *(f"out/{n}" for n in old)])  # and nothing else is there
+    moved = registration.RegistrationResult(res.params + 1.0, res.center, None, res.timings)
+    write_outputs(moved, fixed, moving, out, overwrite=True, qc=False)
+    assert json.loads((out / "result.json").read_text())["params"]["tx"] == pytest.approx(res.params[0] + 1.0)
+    assert listing(tmp_path) == sorted(["out", *(f"out/{n}" for n in old)])  # no aside or temporary folder left
+
+
+@pytest.mark.parametrize("how", ["sigterm", "ctrl-c"])
+def test_sigterm_or_ctrl_c_during_register_leaves_nothing(pair, tmp_path, with_small_network, monkeypatch, capsys,
+                                                          how):
+    in_main_thread()
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def interrupted_while_writing(*args, **kwargs):
+        if how == "sigterm":
+            os.kill(os.getpid(), signal.SIGTERM)  # a real signal; the command's handler raises in this thread
+            time.sleep(30)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(outputs, "qc_figure", interrupted_while_writing)
+    code, err = run_cli(capsys, ["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir",
+                                 tmp_path / "new" / "out"])
+    assert (code, last_line(err)) == ((143, "monai-rigidreg register: terminated") if how == "sigterm" else
+                                      (130, "monai-rigidreg register: interrupted"))
+    assert listing(tmp_path) == []  # no output, no hidden temporary folder, not even the parent it made
+    assert signal.getsignal(signal.SIGTERM) == previous
+
+
+def test_sigterm_while_writing_outputs_from_python_cleans_up(result, tmp_path, monkeypatch):
+    """Library use (and the bundle): write_outputs turns SIGTERM into cleanup where nothing else handles it."""
+    in_main_thread()
+    res, fixed, moving = result
+    previous = signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        monkeypatch.setattr(outputs, "qc_figure", lambda *a, **k: (os.kill(os.getpid(), signal.SIGTERM),
+                                                                   time.sleep(30)))
+        with pytest.raises(Terminated):
+            write_outputs(res, fixed, moving, tmp_path / "out")
+        assert listing(tmp_path) == []
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def test_a_failed_demo_leaves_nothing(tmp_path, monkeypatch, capsys):
+    from monai_rigidreg.simulation import pair as pair_module
+
+    def simulated_then_failed(output_dir, **kwargs):
+        Path(output_dir).mkdir(parents=True)
+        (Path(output_dir) / "simct.nii.gz").write_bytes(b"half a volume")
+        raise InputError("the simulation failed")
+
+    monkeypatch.setattr(pair_module, "simulate_pair", simulated_then_failed)
+    code, err = run_cli(capsys, ["demo", "--output-dir", tmp_path / "new" / "demo", "--device", "cpu"])
+    assert (code, last_line(err)) == (2, "monai-rigidreg demo: error: the simulation failed")
+    assert listing(tmp_path) == []
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# simulate, evaluate: validated before anything is written
+# ---------------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("bad", ["corrupt", "2d"])
+def test_simulate_with_an_unusable_phantom_writes_nothing(tmp_path, capsys, bad):
+    phantom = tmp_path / f"{bad}.nii.gz"
+    if bad == "corrupt":
+        phantom.write_bytes(b"not a NIfTI file" * 20)
+        message = "unreadable or corrupt image file"
+    else:
+        sitk.WriteImage(sitk.Image(16, 16, sitk.sitkInt16), str(phantom))
+        message = "expected a 3D volume, got a 2D image"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for out in (tmp_path / "new" / "sim", empty):
+        code, err = run_cli(capsys, ["simulate", "--output-dir", out, "--phantom", phantom, "--device", "cpu",
+                                     "--no-progress"])
+        assert code == 2 and f"{phantom.name}: {message}" in last_line(err), err
+    assert listing(tmp_path) == [f"{bad}.nii.gz", "empty"]  # no simulation.json, no new folders
+
+
+def test_simulate_failing_before_any_volume_leaves_no_trace(tmp_path, monkeypatch):
+    from monai_rigidreg.simulation import dataset
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dataset, "write_simct", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        dataset.simulate_dataset(tmp_path / "new" / "sim", num_cases=1, progress=False, device="cpu", **TINY_SIM)
+    assert listing(tmp_path) == []
+
+
+def test_evaluate_refuses_an_empty_datalist_and_a_bad_max_cases(pair, tmp_path, capsys):
+    empty = tmp_path / "empty.json"
+    empty.write_text(json.dumps({"training": []}))
+    code, err = run_cli(capsys, ["evaluate", "--datalist", empty, "--output-dir", tmp_path / "eval"])
+    assert code == 2 and "empty.json: datalist key 'training' holds no cases" in last_line(err)
+    one = tmp_path / "one.json"
+    one.write_text(json.dumps({"training": [{"fixed": pair["fixed"], "moving": pair["moving"], "params": [0] * 6}]}))
+    code, err = run_cli(capsys, ["evaluate", "--datalist", one, "--output-dir", tmp_path / "eval", "--max-cases", "0"])
+    assert code == 2 and "max_cases must be a whole number >= 1, got 0" in last_line(err)
+    assert listing(tmp_path) == ["empty.json", "one.json"]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# exit codes: documented, and the same scheme for usage errors and internal failures
+# ---------------------------------------------------------------------------------------------------------------
+def test_exit_codes_are_documented_in_every_help_and_the_readme(capsys):
+    for command in ("simulate", "train", "register", "evaluate", "demo"):
+        with pytest.raises(SystemExit) as info:
+            main([command, "--help"])
+        assert info.value.code == 0
+        text = " ".join(capsys.readouterr().out.split())
+        for code in EXIT_CODES:
+            assert f" {code} " in text.split("exit status:")[1], (command, code)
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = readme.split("### Exit codes", 1)[1].split("\n#", 1)[0]
+    for code in EXIT_CODES:
+        assert f"| {code} |" in section, code
+    assert main([]) == 2  # no command: a usage error, as argparse's own
+    with pytest.raises(SystemExit) as info:
+        main(["register", "--fixed"])
+    assert info.value.code == 2
+
+
+def test_internal_failures_are_one_line_with_exit_1_and_file_system_errors_exit_2(monkeypatch, capsys):
+    import monai_rigidreg.register_cli as register_cli
+
+    args = ["register", "--fixed", "ct", "--moving", "cbct", "--output-dir", "out"]
+
+    def bug(_):
+        raise ZeroDivisionError("float division by zero")
+
+    monkeypatch.setattr(register_cli, "run", bug)
+    code, err = run_cli(capsys, args)
+    assert code == 1 and "Traceback" not in err
+    assert last_line(err).startswith("monai-rigidreg register: internal error: ZeroDivisionError: float division by "
+                                     "zero (a bug; rerun with -v")
+    code, err = run_cli(capsys, ["-v", *args])
+    assert code == 1 and "Traceback" in err
+
+    def denied(_):
+        raise PermissionError(13, "Permission denied", "/data/out")
+
+    monkeypatch.setattr(register_cli, "run", denied)
+    code, err = run_cli(capsys, args)
+    assert (code, last_line(err)) == (2, "monai-rigidreg register: error: /data/out: Permission denied")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# the bundle: the same checks, one line, exit 2
+# ---------------------------------------------------------------------------------------------------------------
+def test_bundle_check_inputs_ends_the_run_with_one_line(pair, tmp_path, capsys):
+    missing = tmp_path / "missing.nii.gz"
+    for fixed, message in [("", "no fixed image given"),
+                           (missing, "missing.nii.gz: no such file or directory (the fixed image)")]:
+        with pytest.raises(SystemExit) as info:
+            outputs.bundle_check_inputs(fixed, pair["moving"], tmp_path / "out")
+        assert info.value.code == 2
+        assert message in last_line(capsys.readouterr().err)
+    with pytest.raises(SystemExit):
+        outputs.bundle_check_inputs(pair["fixed"], pair["moving"], tmp_path / "out", cascade_steps=0)
+    assert "cascade_steps must be a whole number >= 1, got 0" in capsys.readouterr().err
+    assert listing(tmp_path) == []
+
+
+def test_monai_bundle_run_reports_bad_inputs_in_one_line(pair, tmp_path):
+    """``python -m monai.bundle run`` on the shipped inference config: a missing --fixed (refused before the network
+    is built) and a corrupt one (refused when read): exit 2, the message last, no traceback, no output folder."""
+    corrupt = tmp_path / "corrupt.nii.gz"
+    corrupt.write_bytes(b"\x00" * 100)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    for extra, message in [([], "monai-rigidreg bundle: error: no fixed image given"),
+                           (["--fixed", str(corrupt)], "corrupt.nii.gz: unreadable or corrupt image file")]:
+        proc = subprocess.run([sys.executable, "-m", "monai.bundle", "run", "--config_file",
+                               str(BUNDLE / "configs" / "inference.json"), "--bundle_root", str(BUNDLE),
+                               "--moving", pair["moving"], "--output_dir", str(tmp_path / "out"), "--device",
+                               "$torch.device('cpu')", *extra], cwd=tmp_path, capture_output=True, text=True,
+                              timeout=300, env=env)
+        assert proc.returncode == 2, proc.stderr[-3000:]
+        assert message in last_line(proc.stderr) and "Traceback" not in proc.stderr, proc.stderr[-3000:]
+        assert not (tmp_path / "out").exists()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# geometry: a DICOM series with a missing slice registers like the complete series
+# ---------------------------------------------------------------------------------------------------------------
+def test_dicom_ct_with_a_missing_slice_registers_like_the_complete_series(fast_pair, small_registrar, tmp_path):
+    uid = "1.2.826.0.1.3680043.2.1125.55"
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    d = tmp_path / "ct"
+    write_dicom_series(fixed, d, uid)
+    complete = small_registrar(load_volume(d), moving, refine=True, assess=False).params
+    Path(list_dicom_series(d)[uid][fixed.GetSize()[2] // 2 + 3]).unlink()  # a slice inside the body
+    gapped = small_registrar(load_volume(d), moving, refine=True, assess=False).params
+    assert np.abs(gapped[:3] - complete[:3]).max() < 0.5  # mm
+    assert np.abs(gapped[3:] - complete[3:]).max() < 0.5  # degrees
