@@ -6,8 +6,6 @@ import argparse
 import json
 from pathlib import Path
 
-from monai_rigidreg.io import check_output_dir
-
 __all__ = ["add_parser", "run"]
 
 
@@ -51,10 +49,11 @@ def run(args: argparse.Namespace) -> int:
     # imported here, not at the top: `monai-rigidreg --help` imports every sub-command module to build its parser,
     # and the registration stack pulls in MONAI (python -c "import monai_rigidreg.registration": 3-5 s on 2 cores,
     # against about 1.5 s for the package's own import, mostly torch)
-    from monai_rigidreg.outputs import register_files
+    from monai_rigidreg.outputs import check_register_inputs, register_files
     from monai_rigidreg.registration import RigidRegistrar
 
-    check_output_dir(args.output_dir, args.overwrite)  # before the network is loaded
+    # inputs, options and the output folder before the network is loaded (register_files checks them again, cheaply)
+    check_register_inputs(args.fixed, args.moving, args.output_dir, args.overwrite, args.cascade_steps)
     registrar = RigidRegistrar.from_bundle(args.bundle, device=args.device)
     paths = register_files(registrar, args.fixed, args.moving, args.output_dir, refine=args.refine,
                            overwrite=args.overwrite, qc=not args.no_qc, cascade_steps=args.cascade_steps,

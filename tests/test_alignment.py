@@ -263,3 +263,14 @@ def test_network_jacobian_per_level_and_its_length_check():
         GaussNewtonStage(grid.spacing, **kw, jacobian=("fixed", "fixed", "symmetric"))
     with pytest.raises(ValueError, match="jacobian must be one of"):
         GaussNewtonStage(grid.spacing, **kw, jacobian="sideways")
+
+
+def test_scripting_the_two_stage_net_fails_loudly_with_the_way_out():
+    """``torch.jit.script`` (``ckpt_export`` without ``--use_trace``) refuses with what to do; the regression alone
+    scripts (the traced export of the whole network is tests/test_bundle.py's)."""
+    net = TwoStageRigidNet(DualEncoderRigidNet(**TINY), GaussNewtonStage((4.0, 4.0, 4.0))).eval()
+    with pytest.raises(RuntimeError, match="Export it by tracing"):
+        torch.jit.script(net)
+    scripted = torch.jit.script(net.regression)
+    x = torch.rand(1, 2, 16, 16, 16)
+    torch.testing.assert_close(scripted(x), net.regression(x))

@@ -60,3 +60,9 @@ def test_verbosity_before_or_after_the_sub_command(argv, level):
     rest = ["--fixed", "a", "--moving", "b", "--output-dir", "c"]
     for args in (parser.parse_args([*argv, "register", *rest]), parser.parse_args(["register", *argv, *rest])):
         assert log_level(args.verbose, args.quiet) == level
+
+
+def test_licence_file_ships_with_the_package_metadata():
+    text = (ROOT / "LICENSE").read_text(encoding="utf-8")
+    assert "Apache License" in text and "Version 2.0" in text
+    assert _pyproject()["project"]["license"] == {"text": "Apache-2.0"}

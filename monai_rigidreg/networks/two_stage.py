@@ -50,6 +50,16 @@ class TwoStageRigidNet(nn.Module):
         self.in_channels = int(regression.in_channels)
         self._register_load_state_dict_pre_hook(_accept_flat_regression_keys, with_module=True)
 
+    def __prepare_scriptable__(self) -> TwoStageRigidNet:
+        """``torch.jit.script`` (and ``ckpt_export`` without ``--use_trace``) stops here with what to do instead."""
+        if self.fine_stage is None or not self.fine_stage_enabled:
+            raise RuntimeError("script the regression itself: torch.jit.script(net.regression)")
+        raise RuntimeError(
+            "TwoStageRigidNet cannot be scripted: its Gauss-Newton fine stage builds grids with numpy and caches them. "
+            "Export it by tracing at the network grid size, e.g. python -m monai.bundle ckpt_export network_def "
+            "--use_trace True --input_shape '[1, 2, 64, 64, 64]' ..., or script the regression alone "
+            "(torch.jit.script(net.regression))")
+
     def forward_stages(self, moving: torch.Tensor, fixed: torch.Tensor) -> dict[str, torch.Tensor]:
         """Both estimates (see :data:`STAGE_KEYS`); ``moving``, ``fixed``: ``[B, C, x, y, z]`` on the network grid."""
         coarse = self.regression.forward_pair(moving, fixed)
