@@ -135,6 +135,7 @@ def register_files(
     isocenter: Any = None,
     reg: str = "auto",
     transform_format: str = "tfm",
+    fine_stage: bool = True,
 ) -> dict[str, Path]:
     """Load both volumes, register them and write the standard outputs.
 
@@ -154,6 +155,7 @@ def register_files(
             (missing: head-first supine is assumed, with a warning, and recorded).
         reg: ``registration.dcm``: one of :data:`REG_MODES`.
         transform_format: ``"tfm"`` or ``"h5"`` (the ITK transform file).
+        fine_stage: ``False``: the learned regression alone (see :func:`~monai_rigidreg.registration.register`).
 
     Returns:
         ``{file name: path}`` of the files written (the result itself is in ``result.json``).
@@ -166,7 +168,7 @@ def register_files(
     refs, reg_warning = dicom_references(fixed, moving, fixed_series_uid, moving_series_uid, reg)
     fixed_img = load_volume(fixed, series_uid=fixed_series_uid)
     moving_img = load_volume(moving, series_uid=moving_series_uid)
-    result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps)
+    result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps, fine_stage=fine_stage)
     result.provenance = registration_provenance(fixed, moving, fixed_series_uid, moving_series_uid,
                                                 bundle=getattr(registrar, "source", {}), device=str(registrar.device))
     if reg_warning:

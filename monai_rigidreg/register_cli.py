@@ -36,6 +36,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="write registration.dcm: auto (when both inputs are DICOM series with their own frames of "
                    "reference; otherwise a warning says why not), on (required: refused before registering when it "
                    "cannot be written), off")
+    p.add_argument("--no-fine-stage", action="store_true",
+                   help="the learned network alone: the regression's estimate without the Gauss-Newton stage (to "
+                   "measure it; with --refine the optimizer still runs)")
     p.add_argument("--transform-format", choices=("tfm", "h5"), default="tfm",
                    help="ITK transform file: transform.tfm (text) or transform.h5 (HDF5)")
     p.add_argument("--fail-on-flag", action="store_true",
@@ -58,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
     paths = register_files(registrar, args.fixed, args.moving, args.output_dir, refine=args.refine,
                            overwrite=args.overwrite, qc=not args.no_qc, cascade_steps=args.cascade_steps,
                            fixed_series_uid=args.fixed_series_uid, moving_series_uid=args.moving_series_uid,
-                           isocenter=args.isocenter, reg=args.reg, transform_format=args.transform_format)
+                           isocenter=args.isocenter, reg=args.reg, transform_format=args.transform_format,
+                           fine_stage=not args.no_fine_stage)
     summary = json.loads(paths["result.json"].read_text())
     couch = summary.get("couch_shift", {})
     print(json.dumps({"params": summary["params"], "confidence": round(summary["confidence"], 3),

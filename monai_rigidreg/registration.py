@@ -10,9 +10,10 @@ Writing the output files is :mod:`monai_rigidreg.outputs`; the confidence check 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -50,7 +51,7 @@ from monai_rigidreg.networks import cascade_register
 from monai_rigidreg.provenance import bundle_record
 from monai_rigidreg.transforms.grid import NormalizeHU, ResampleToNetworkGrid, resample_to_grid
 
-__all__ = ["RegistrationResult", "RigidRegistrar", "register", "check_intensities"]
+__all__ = ["RegistrationResult", "RigidRegistrar", "register", "check_intensities", "fine_stage_switch"]
 
 logger = logging.getLogger(__name__)
 
@@ -265,8 +266,25 @@ class RigidRegistrar:
         resample_moving: bool = True,
         moving_fov: sitk.Image | None = None,
         assess: bool = True,
+        fine_stage: bool = True,
     ) -> RegistrationResult:
-        """Register ``moving`` (CBCT) to ``fixed`` (CT); see :func:`register`."""
+        """Register ``moving`` (CBCT) to ``fixed`` (CT); see :func:`register` (``fine_stage=False``: the learned
+        regression alone, also in the confidence check's swapped-input estimate)."""
+        with fine_stage_switch(self.network, fine_stage):
+            result = self._register(fixed, moving, refine, cascade_steps, resample_moving, moving_fov, assess)
+        result.details["fine_stage"] = bool(fine_stage) and getattr(self.network, "fine_stage", None) is not None
+        return result
+
+    def _register(
+        self,
+        fixed: sitk.Image | str | Path,
+        moving: sitk.Image | str | Path,
+        refine: bool,
+        cascade_steps: int | None,
+        resample_moving: bool,
+        moving_fov: sitk.Image | None,
+        assess: bool,
+    ) -> RegistrationResult:
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
         fixed_img = as_image(fixed, "fixed")
@@ -400,6 +418,7 @@ def register(
     refine: bool = False,
     resample_moving: bool = True,
     moving_fov: sitk.Image | None = None,
+    fine_stage: bool = True,
 ) -> RegistrationResult:
     """Rigidly register a CBCT (``moving``) to a planning CT (``fixed``).
 
@@ -415,6 +434,9 @@ def register(
         refine: polish the network estimate with SimpleITK Mattes-MI (Euler3D, masked to the CBCT FOV).
         resample_moving: also return the CBCT resampled onto the CT grid.
         moving_fov: mask of the CBCT field of view on the CBCT grid (default: inscribed cylinder).
+        fine_stage: ``False`` measures the learned network alone: the regression's estimate, without the
+            Gauss-Newton stage, search, multi-start or optimizer (``refine`` adds its optimizer, so keep it off for
+            that). Also with ``model=`` a registrar built once. ``details["fine_stage"]`` records it.
 
     Returns:
         :class:`RegistrationResult` with ``params`` (mm/deg, fixed -> moving, about the fixed image centre),
@@ -436,7 +458,23 @@ def register(
             _DEFAULT_REGISTRARS[key] = RigidRegistrar.from_bundle(bundle, device=device)
         registrar = _DEFAULT_REGISTRARS[key]
     return registrar(fixed, moving, refine=refine, cascade_steps=cascade_steps, resample_moving=resample_moving,
-                     moving_fov=moving_fov)
+                     moving_fov=moving_fov, fine_stage=fine_stage)
+
+
+@contextlib.contextmanager
+def fine_stage_switch(network: nn.Module, enabled: bool) -> Iterator[None]:
+    """Run ``network`` with its fine stage on or off for the duration of the block (a
+    :class:`~monai_rigidreg.networks.TwoStageRigidNet`'s ``fine_stage_enabled``; other networks are left alone), and
+    restore the setting afterwards, whatever happens."""
+    if not hasattr(network, "fine_stage_enabled"):
+        yield
+        return
+    before = network.fine_stage_enabled
+    network.fine_stage_enabled = bool(enabled)
+    try:
+        yield
+    finally:
+        network.fine_stage_enabled = before
 
 
 def _check_steps(steps: Any) -> int:

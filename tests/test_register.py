@@ -296,3 +296,31 @@ def test_result_json_audit_trail_and_inverse_matrices(fast_pair, tmp_path):
     flip = np.diag([-1.0, -1.0, 1.0, 1.0])
     np.testing.assert_allclose(np.array(result["matrix_moving_to_fixed_ras"]),
                                flip @ np.linalg.inv(m) @ flip, atol=1e-9)
+
+
+def test_fine_stage_switch_returns_the_regressions_own_estimate(fast_pair, tmp_path):
+    """``register(..., fine_stage=False)`` (also with a registrar built once) and ``--no-fine-stage``: the learned
+    regression's estimate itself, re-expressed about the CT centre; the registrar's network is left as it was."""
+    import torch
+
+    from monai_rigidreg.geometry import recenter_params
+
+    registrar = RigidRegistrar.from_bundle(device="cpu")
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    alone = register(fixed, moving, model=registrar, fine_stage=False, resample_moving=False)
+    full = register(fixed, moving, model=registrar, resample_moving=False)
+    assert registrar.network.fine_stage_enabled  # restored
+    assert alone.details["fine_stage"] is False and full.details["fine_stage"] is True
+    grid = registrar.network_grid(fixed, moving)
+    m_t, f_t = registrar.preprocess(moving, grid), registrar.preprocess(fixed, grid)
+    with torch.no_grad():
+        own = registrar.network.regression.forward_pair(m_t[None], f_t[None])[0].double().numpy()
+    np.testing.assert_allclose(alone.params, recenter_params(own, grid.center(), alone.center), atol=1e-4)
+    assert np.abs(alone.params - full.params).max() > 0.01  # the fine stage does move the estimate
+    out = tmp_path / "out"
+    assert main(["register", "--fixed", str(fast_pair["fixed"]), "--moving", str(fast_pair["moving"]),
+                 "--output-dir", str(out), "--no-qc", "--no-fine-stage", "--device", "cpu"]) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["details"]["fine_stage"] is False
+    np.testing.assert_allclose([result["params"][k] for k in ("tx", "ty", "tz", "rx", "ry", "rz")], alone.params,
+                               atol=1e-4)
