@@ -13,8 +13,7 @@ ITK's resampling direction), so the matrix to store is its **inverse**::
 
     moving_to_fixed = geometry.invert_matrix(geometry.sitk_to_matrix(io.read_transform("transform.tfm")))
 
-The matrix is written row-major as 16 Decimal String (DS) values of at most 16 characters each
-(:func:`format_ds`), with ``FrameOfReferenceTransformationMatrixType = "RIGID"``.
+The matrix is written row-major as 16 Decimal Strings of at most 16 characters (:func:`format_ds`), type RIGID.
 
 A registration only makes sense between two *different* frames of reference that the DICOM headers name: a CT and
 a CBCT that share one Frame of Reference UID (DICOM then already declares their coordinates identical), or an
@@ -32,9 +31,7 @@ Typical use::
 
 from __future__ import annotations
 
-import math
 import os
-import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime
@@ -50,8 +47,9 @@ from pydicom.sequence import Sequence as DicomSequence
 from pydicom.uid import PYDICOM_IMPLEMENTATION_UID, ExplicitVRLittleEndian, generate_uid
 
 from monai_rigidreg import __version__
+from monai_rigidreg.dicom_series import format_ds, is_valid_uid, list_dicom_series, select_dicom_series
 from monai_rigidreg.errors import InputError
-from monai_rigidreg.io import check_output_path, list_dicom_series, select_dicom_series
+from monai_rigidreg.io import check_output_path
 
 __all__ = [
     "SPATIAL_REGISTRATION_SOP_CLASS_UID",
@@ -68,8 +66,6 @@ SPATIAL_REGISTRATION_SOP_CLASS_UID = "1.2.840.10008.5.1.4.1.1.66.1"
 
 MANUFACTURER = "monai-rigidreg"
 
-_DS_MAX_CHARS = 16
-_UID_PATTERN = re.compile(r"(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*")  # PS3.5 section 9.1, at most 64 characters
 _PYDICOM_MAJOR = int(pydicom.__version__.split(".")[0])
 
 # CID 7100 "RCS Registration Method Type"
@@ -228,29 +224,6 @@ def _text(value: object) -> str:
 # ---------------------------------------------------------------------------------------------------------------
 # Writing
 # ---------------------------------------------------------------------------------------------------------------
-def format_ds(value: float) -> str:
-    """A number as a DICOM Decimal String of at most 16 characters, with as many significant digits as fit.
-
-    ``-0.12345678901234567`` becomes ``"-0.1234567890123"``, ``1e-20`` stays ``"1e-20"``; negative zero is
-    written ``"0"``. Every finite float fits: 16 characters keep at least 9 significant digits (relative error
-    below 5e-9), and for numbers below 1e5 in magnitude, such as the entries of a registration matrix (rotation
-    entries and translations in mm), the absolute error is below 1e-9.
-
-    Raises:
-        ValueError: ``value`` is NaN or infinite (DS has no spelling for them).
-    """
-    v = float(value)
-    if not math.isfinite(v):
-        raise ValueError(f"a DICOM Decimal String cannot hold {v}")
-    if v == 0.0:
-        return "0"
-    for digits in range(17, 0, -1):
-        text = f"{v:.{digits}g}"
-        if len(text) <= _DS_MAX_CHARS:
-            return text
-    raise AssertionError("unreachable: one significant digit always fits")  # pragma: no cover
-
-
 def write_spatial_registration(
     path: str | Path,
     fixed: SeriesReference,
@@ -403,16 +376,12 @@ def _check_reference(ref: SeriesReference, role: str) -> None:
         if not value:
             raise InputError(f"the {role} series has no {what}: a DICOM registration cannot be written without it "
                              "(inputs without DICOM UIDs, such as NIfTI, need user-given UIDs)", where)
-        if not _is_valid_uid(value):
+        if not is_valid_uid(value):
             raise InputError(f"the {role} series' {what} {value!r} is not a valid DICOM UID", where)
     for inst in ref.instances:
         for value in inst:
-            if not _is_valid_uid(value):
+            if not is_valid_uid(value):
                 raise InputError(f"the {role} series references an invalid SOP UID {value!r}", where)
-
-
-def _is_valid_uid(value: str) -> bool:
-    return len(value) <= 64 and _UID_PATTERN.fullmatch(value) is not None
 
 
 def _check_rigid(matrix: ArrayLike) -> np.ndarray:

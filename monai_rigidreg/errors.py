@@ -9,7 +9,7 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["RigidRegError", "InputError", "OutputExistsError", "Terminated", "sigterm_raises"]
+__all__ = ["RigidRegError", "InputError", "OutputExistsError", "Terminated", "sigterm_raises", "first_line"]
 
 
 class RigidRegError(Exception):
@@ -69,3 +69,10 @@ def sigterm_raises(only_if_default: bool = False) -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+
+
+def first_line(exc: BaseException) -> str:
+    """The useful sentence of a library exception for a one-line message (SimpleITK's is its last line)."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    # SimpleITK errors end with the useful sentence; keep it short
+    return lines[-1] if lines else type(exc).__name__

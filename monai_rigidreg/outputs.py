@@ -135,7 +135,7 @@ def register_files(
     isocenter: Any = None,
     reg: str = "auto",
     transform_format: str = "tfm",
-    fine_stage: bool = True,
+    fine_stage: bool | None = None,
 ) -> dict[str, Path]:
     """Load both volumes, register them and write the standard outputs.
 

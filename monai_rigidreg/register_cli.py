@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
                            overwrite=args.overwrite, qc=not args.no_qc, cascade_steps=args.cascade_steps,
                            fixed_series_uid=args.fixed_series_uid, moving_series_uid=args.moving_series_uid,
                            isocenter=args.isocenter, reg=args.reg, transform_format=args.transform_format,
-                           fine_stage=not args.no_fine_stage)
+                           fine_stage=False if args.no_fine_stage else None)
     summary = json.loads(paths["result.json"].read_text())
     couch = summary.get("couch_shift", {})
     print(json.dumps({"params": summary["params"], "confidence": round(summary["confidence"], 3),

@@ -266,13 +266,16 @@ class RigidRegistrar:
         resample_moving: bool = True,
         moving_fov: sitk.Image | None = None,
         assess: bool = True,
-        fine_stage: bool = True,
+        fine_stage: bool | None = None,
     ) -> RegistrationResult:
         """Register ``moving`` (CBCT) to ``fixed`` (CT); see :func:`register` (``fine_stage=False``: the learned
-        regression alone, also in the confidence check's swapped-input estimate)."""
+        regression alone, also in the confidence check's swapped-input estimate; ``None``: as the network is
+        configured, e.g. by the bundle's ``fine_stage``)."""
         with fine_stage_switch(self.network, fine_stage):
             result = self._register(fixed, moving, refine, cascade_steps, resample_moving, moving_fov, assess)
-        result.details["fine_stage"] = bool(fine_stage) and getattr(self.network, "fine_stage", None) is not None
+            used = getattr(self.network, "fine_stage", None) is not None and getattr(
+                self.network, "fine_stage_enabled", True)
+        result.details["fine_stage"] = bool(used)
         return result
 
     def _register(
@@ -418,7 +421,7 @@ def register(
     refine: bool = False,
     resample_moving: bool = True,
     moving_fov: sitk.Image | None = None,
-    fine_stage: bool = True,
+    fine_stage: bool | None = None,
 ) -> RegistrationResult:
     """Rigidly register a CBCT (``moving``) to a planning CT (``fixed``).
 
@@ -436,7 +439,8 @@ def register(
         moving_fov: mask of the CBCT field of view on the CBCT grid (default: inscribed cylinder).
         fine_stage: ``False`` measures the learned network alone: the regression's estimate, without the
             Gauss-Newton stage, search, multi-start or optimizer (``refine`` adds its optimizer, so keep it off for
-            that). Also with ``model=`` a registrar built once. ``details["fine_stage"]`` records it.
+            that). Also with ``model=`` a registrar built once. ``None`` (default): as the network is configured
+            (the shipped bundle: on). ``details["fine_stage"]`` records what ran.
 
     Returns:
         :class:`RegistrationResult` with ``params`` (mm/deg, fixed -> moving, about the fixed image centre),
@@ -462,11 +466,11 @@ def register(
 
 
 @contextlib.contextmanager
-def fine_stage_switch(network: nn.Module, enabled: bool) -> Iterator[None]:
+def fine_stage_switch(network: nn.Module, enabled: bool | None) -> Iterator[None]:
     """Run ``network`` with its fine stage on or off for the duration of the block (a
-    :class:`~monai_rigidreg.networks.TwoStageRigidNet`'s ``fine_stage_enabled``; other networks are left alone), and
-    restore the setting afterwards, whatever happens."""
-    if not hasattr(network, "fine_stage_enabled"):
+    :class:`~monai_rigidreg.networks.TwoStageRigidNet`'s ``fine_stage_enabled``; other networks, and ``enabled=None``,
+    leave it as it is), and restore the setting afterwards, whatever happens."""
+    if enabled is None or not hasattr(network, "fine_stage_enabled"):
         yield
         return
     before = network.fine_stage_enabled

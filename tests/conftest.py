@@ -120,3 +120,15 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 def device_dtype(request) -> tuple[torch.device, torch.dtype]:
     """``(device, dtype)`` for the network, warp, loss and fine-stage tests: CPU and CUDA, float32 and float64."""
     return torch.device(request.param[0]), request.param[1]
+
+
+def small_registrar_for_tests(cascade_steps: int = 1):
+    """An untrained, small network (seeded) in a registrar on a 32^3 grid at 8 mm: fast API/CLI tests that do not
+    depend on the shipped weights."""
+    from monai_rigidreg.networks import DualEncoderRigidNet
+    from monai_rigidreg.registration import RigidRegistrar
+
+    torch.manual_seed(0)
+    net = DualEncoderRigidNet(channels=(4, 8, 8, 8), pool_size=2)
+    return RigidRegistrar(net, network_size=(32, 32, 32), network_spacing=(8.0, 8.0, 8.0),
+                          cascade_steps=cascade_steps, device="cpu")

@@ -11,14 +11,12 @@ import numpy as np
 import pydicom
 import pytest
 import SimpleITK as sitk
-import torch
-from conftest import TINY_SIM, write_dicom_series
+from conftest import TINY_SIM, small_registrar_for_tests, write_dicom_series
 
 from monai_rigidreg.cli import main
 from monai_rigidreg.dicom_reg import read_spatial_registration
 from monai_rigidreg.geometry import transform_points
 from monai_rigidreg.io import load_volume
-from monai_rigidreg.networks import DualEncoderRigidNet
 from monai_rigidreg.registration import RigidRegistrar
 
 MOTION = [5.0, -3.0, 4.0, 3.0, -2.0, 4.0]
@@ -45,9 +43,7 @@ def dicom_pair(pair, tmp_path_factory):
 
 @pytest.fixture(autouse=True)
 def small_network(monkeypatch):
-    torch.manual_seed(0)
-    reg = RigidRegistrar(DualEncoderRigidNet(channels=(4, 8, 8, 8), pool_size=2), network_size=(32, 32, 32),
-                         network_spacing=(8.0, 8.0, 8.0), device="cpu")
+    reg = small_registrar_for_tests()
     monkeypatch.setattr(RigidRegistrar, "from_bundle", classmethod(lambda cls, *a, **k: reg))
 
 

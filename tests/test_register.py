@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 import torch
-from conftest import KNOWN_MOTION, TINY_SIM, write_dicom_series
+from conftest import KNOWN_MOTION, TINY_SIM, small_registrar_for_tests, write_dicom_series
 
 from monai_rigidreg.cli import main
 from monai_rigidreg.confidence import confidence_score
@@ -33,10 +33,7 @@ def pair(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def small_registrar():
-    torch.manual_seed(0)
-    net = DualEncoderRigidNet(channels=(4, 8, 8, 8), pool_size=2)
-    return RigidRegistrar(net, network_size=(32, 32, 32), network_spacing=(8.0, 8.0, 8.0), cascade_steps=2,
-                          device="cpu")
+    return small_registrar_for_tests(cascade_steps=2)
 
 
 def test_refine_recovers_known_motion_and_outputs_are_consistent(pair, small_registrar, tmp_path):

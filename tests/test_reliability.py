@@ -19,14 +19,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import SimpleITK as sitk
-import torch
-from conftest import TINY_SIM, write_dicom_series
+from conftest import TINY_SIM, small_registrar_for_tests, write_dicom_series
 
 from monai_rigidreg import outputs, registration, staging
 from monai_rigidreg.cli import EXIT_CODES, main
 from monai_rigidreg.errors import InputError, OutputExistsError, Terminated
 from monai_rigidreg.io import list_dicom_series, load_volume
-from monai_rigidreg.networks import DualEncoderRigidNet
 from monai_rigidreg.outputs import DEFAULT_OUTPUT_FILES, write_outputs
 from monai_rigidreg.registration import RigidRegistrar
 
@@ -44,10 +42,7 @@ def pair(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def small_registrar():
-    torch.manual_seed(0)
-    net = DualEncoderRigidNet(channels=(4, 8, 8, 8), pool_size=2)
-    return RigidRegistrar(net, network_size=(32, 32, 32), network_spacing=(8.0, 8.0, 8.0), cascade_steps=1,
-                          device="cpu")
+    return small_registrar_for_tests(cascade_steps=1)
 
 
 @pytest.fixture

@@ -17,7 +17,7 @@ import SimpleITK as sitk
 from monai_rigidreg.cli import build_parser
 from monai_rigidreg.evaluation import evaluate_datalist, write_html_report
 from monai_rigidreg.evaluation.evaluate import load_datalist, true_params
-from monai_rigidreg.evaluation.html_report import OVERLAY_MAX_BYTES, OverlayGallery, needs_attention
+from monai_rigidreg.evaluation.overlays import OVERLAY_MAX_BYTES, OverlayGallery, needs_attention
 from monai_rigidreg.evaluation.report import CaseResult
 from monai_rigidreg.geometry import Grid
 
@@ -187,9 +187,12 @@ def test_html_report_lists_failed_and_flagged_cases_first(evaluated):
         assert bad == any(k in attrs.get("class", "").split() for k in ("fail", "flag"))
         problem.append(bad)
     assert problem == sorted(problem, reverse=True), "failed and flagged rows first"
-    # the stub's failure (10 mm) is the worst row; its flagged false alarm is among the problem rows
-    first = rows[0][1]
-    assert first[2] == "network" and first[5] == "10.00" and first[6] == "no"
+    # problem rows by decreasing TRE (the stub's 10 mm failure among them: SimpleITK's own failures on these tiny
+    # pairs vary with its thread count, so the worst row may be one of its); its flagged false alarm is listed too
+    tres = [float(cells[5]) for (_, cells), bad in zip(rows, problem) if bad and cells[5] != "nan"]
+    assert tres == sorted(tres, reverse=True)
+    assert any(cells[2] == "network" and cells[5] == "10.00" and cells[6] == "no"
+               for (_, cells), bad in zip(rows, problem) if bad)
     flagged_rows = [cells for _, cells in rows if cells[2] == "network" and cells[8] == "yes"]
     assert len(flagged_rows) == 1 and flagged_rows[0][7] == "0.20" and rows.index(
         next(r for r in rows if r[1] == flagged_rows[0])) < problem.count(True)

@@ -13,7 +13,7 @@ __all__ = ["add_parser", "run"]
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     from monai_rigidreg.evaluation.evaluate import METHODS
-    from monai_rigidreg.evaluation.html_report import DEFAULT_MAX_OVERLAYS
+    from monai_rigidreg.evaluation.overlays import DEFAULT_MAX_OVERLAYS
 
     p = subparsers.add_parser(
         "evaluate",

@@ -21,7 +21,8 @@ from tqdm.auto import tqdm
 
 from monai_rigidreg.classical import elastix_available, register_elastix, register_sitk
 from monai_rigidreg.errors import InputError
-from monai_rigidreg.evaluation.html_report import DEFAULT_MAX_OVERLAYS, OVERLAY_DIR, OverlayGallery, write_html_report
+from monai_rigidreg.evaluation.html_report import write_html_report
+from monai_rigidreg.evaluation.overlays import DEFAULT_MAX_OVERLAYS, OVERLAY_DIR, OverlayGallery
 from monai_rigidreg.evaluation.report import CaseResult, format_report, summarize, write_report
 from monai_rigidreg.geometry import (
     Grid,
@@ -218,7 +219,7 @@ def _run_method(method: str, fixed: sitk.Image, moving: sitk.Image, fov: sitk.Im
     t0 = time.perf_counter()
     if method.startswith("network"):
         res = registrar(fixed, moving, refine=method == "network+refine", resample_moving=False, moving_fov=fov,
-                        assess=True, fine_stage=method != "network-regression")
+                        assess=True, fine_stage=False if method == "network-regression" else None)
         extra = {"confidence": res.confidence, "flagged": res.flagged,
                  "timings": {k: round(v, 4) for k, v in res.timings.items()}}
         return res.params, time.perf_counter() - t0, extra
