@@ -48,6 +48,7 @@ __all__ = [
     "dicom_references",
     "check_register_inputs",
     "bundle_check_inputs",
+    "bundle_errors",
     "bundle_register_files",
 ]
 
@@ -270,7 +271,7 @@ def check_register_inputs(
 
 
 @contextlib.contextmanager
-def _bundle_errors() -> Iterator[None]:
+def bundle_errors() -> Iterator[None]:
     """``python -m monai.bundle run`` prints a traceback for anything raised in a config expression, ending with
     MONAI's "Failed to evaluate ConfigExpression"; the package's own errors end the run instead with their message
     on one line and the exit status of the command line (2; 130 for Ctrl-C, 143 for SIGTERM)."""
@@ -287,19 +288,30 @@ def _bundle_errors() -> Iterator[None]:
 
 
 def bundle_check_inputs(fixed: str | Path | None, moving: str | Path | None, output_dir: str | Path,
-                        overwrite: bool = False, cascade_steps: Any = None) -> None:
+                        overwrite: bool = False, cascade_steps: Any = None, datalist: str | Path | None = None) -> None:
     """:func:`check_register_inputs` for the bundle's ``inference.json`` (its first ``initialize`` step, before the
-    network is built): a bad input ends the run with one line naming the problem and exit status 2.
+    network is built): a bad input ends the run with one line naming the problem and exit status 2. With a
+    ``datalist`` of pairs (batch registration) the datalist must exist and each pair is checked when its turn
+    comes (:class:`~monai_rigidreg.batch.RegistrationEvaluator`).
 
     For ``python -m monai.bundle run``: it raises ``SystemExit`` rather than an exception.
     """
-    with _bundle_errors():
-        check_register_inputs(fixed, moving, output_dir, overwrite, cascade_steps)
+    with bundle_errors():
+        if not datalist:
+            check_register_inputs(fixed, moving, output_dir, overwrite, cascade_steps)
+            return
+        if fixed or moving:
+            raise InputError("give either --fixed/--moving (one pair) or --datalist (pairs), not both")
+        if not Path(datalist).is_file():
+            raise InputError("no such datalist file", datalist)
+        if cascade_steps is not None:
+            _check_steps(cascade_steps)
+        check_output_dir(output_dir, overwrite, allow_existing=True)
 
 
 def bundle_register_files(registrar: RigidRegistrar, fixed: str | Path, moving: str | Path, output_dir: str | Path,
                           **kwargs: Any) -> dict[str, Path]:
     """:func:`register_files` for the bundle's ``inference.json`` (``run``): errors as in :func:`bundle_check_inputs`
     (an unreadable image, for example, ends the run with one line and exit status 2)."""
-    with _bundle_errors():
+    with bundle_errors():
         return register_files(registrar, fixed, moving, output_dir, **kwargs)

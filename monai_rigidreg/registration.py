@@ -11,9 +11,10 @@ Writing the output files is :mod:`monai_rigidreg.outputs`; the confidence check 
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -148,6 +149,8 @@ class RigidRegistrar:
             correction on the CBCT warped by the running estimate).
         device: ``"auto"``, ``"cpu"``, ``"cuda"``, ``"cuda:N"``.
         hu_range: HU window mapped to [0, 1] before the network (as in training).
+        inferer: optional MONAI ``Inferer`` (``inferer(inputs [B, 2, x, y, z], network) -> [B, 6]``) through which
+            every network application runs (the bundle's ``inferer``: ``SimpleInferer``); ``None`` calls the network.
 
     Build it once and reuse it: ``registrar = RigidRegistrar.from_bundle()`` then
     ``monai_rigidreg.register(ct, cbct, model=registrar)`` (or ``registrar(ct, cbct)``).
@@ -161,6 +164,7 @@ class RigidRegistrar:
         cascade_steps: int = 1,
         device: str | torch.device | None = "auto",
         hu_range: tuple[float, float] = (-1000.0, 2000.0),
+        inferer: Callable[[torch.Tensor, nn.Module], torch.Tensor] | None = None,
     ) -> None:
         if network_size is None or network_spacing is None:
             shipped = NetworkGridSpec.from_bundle()
@@ -175,6 +179,7 @@ class RigidRegistrar:
         self.network = network.to(self.device).eval()
         self.cascade_steps = _check_steps(cascade_steps)
         self.hu_range = hu_range
+        self.inferer = inferer
         self.source: dict[str, Any] = {}  # the bundle and weights it came from (from_bundle), for the audit trail
         self._resampler = ResampleToNetworkGrid(self.network_size, self.network_spacing, padding_value=hu_range[0])
         self._normalize = NormalizeHU(a_min=hu_range[0], a_max=hu_range[1])
@@ -244,7 +249,8 @@ class RigidRegistrar:
         k = self.cascade_steps if steps is None else _check_steps(steps)
         m = moving_t[None].to(self.device)
         f = fixed_t[None].to(self.device)
-        params = cascade_register(self.network, m, f, grid, steps=k)
+        net = self.network if self.inferer is None else functools.partial(self.inferer, network=self.network)
+        params = cascade_register(net, m, f, grid, steps=k)
         return params[0].double().cpu().numpy()
 
     def assess(
