@@ -1,6 +1,7 @@
 """Simulation of paired planning-CT (fan-beam FBP) / CBCT (cone-beam FDK) volumes with known rigid motion.
 
-Modules: :mod:`.phantoms` (Shepp-Logan, asymmetric and random phantoms, real CTs), :mod:`.scanner`
+Modules: :mod:`.phantoms` (Shepp-Logan, asymmetric and random phantoms, real CTs), :mod:`.synth` (synthetic
+anatomy for domain randomization: random label maps and contrasts, the ``"synth"`` phantom), :mod:`.scanner`
 (geometries), :mod:`.projector` (forward/back projection), :mod:`.reconstruction` (FDK, FBP), :mod:`.physics`
 (noise, scatter, beam hardening, truncation), :mod:`.protocols` (motions), :mod:`.config` (configuration and
 presets), :mod:`.volumes` (one Sim-CT, one CBCT, one case), :mod:`.dataset` (datasets), :mod:`.pair` (one pair),
@@ -31,6 +32,7 @@ from monai_rigidreg.simulation.projector import cone_backproject, cone_forward, 
 from monai_rigidreg.simulation.protocols import PROTOCOLS, MotionCase, paper_cases, protocol_cases, random_cases
 from monai_rigidreg.simulation.reconstruction import FILTERS, fbp_fan, fdk, ramp_filter
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry, FanBeamGeometry
+from monai_rigidreg.simulation.synth import synth_hu_volume, synth_label_map, synth_phantom
 from monai_rigidreg.simulation.volumes import save_volume_hu, simulate_case, simulate_cbct, simulate_simct
 
 __all__ = [
@@ -54,6 +56,9 @@ __all__ = [
     "random_phantom_shapes",
     "shepp_logan_shapes",
     "voxelize",
+    "synth_hu_volume",
+    "synth_label_map",
+    "synth_phantom",
     "CBCTPhysics",
     "apply_cbct_physics",
     "fov_mask",

@@ -38,7 +38,8 @@ class SimulationConfig:
     """Everything that determines a simulated dataset (units in the field names' docs).
 
     Args:
-        phantom: ``"shepp-logan"``, ``"shepp-logan-asym"``, ``"random"`` or a path to a CT (NIfTI/DICOM).
+        phantom: ``"shepp-logan"``, ``"shepp-logan-asym"``, ``"random"``, ``"synth"`` or a path to a CT
+            (NIfTI/DICOM).
         protocol: ``"paper"`` or ``"random"`` (see :mod:`monai_rigidreg.simulation.protocols`).
         num_cases: number of cases (``None``: the whole ``paper`` protocol, 64 for ``random``).
         preset: name of the preset the defaults came from (``"paper"`` or ``"fast"``).

@@ -53,8 +53,12 @@ from monai_rigidreg.simulation.volumes import _seed, simulate_case, write_simct
 __all__ = ["simulate_dataset"]
 
 
+PHANTOM_FAMILIES: tuple[str, ...] = ("random", "synth")
+"""Phantom names that stand for a family: one object per seed (``num_objects`` of them in a dataset)."""
+
+
 def _num_objects(cfg: SimulationConfig, num_cases: int) -> int:
-    if cfg.phantom != "random":
+    if cfg.phantom not in PHANTOM_FAMILIES:
         return 1
     if cfg.num_objects is not None:
         return max(1, min(int(cfg.num_objects), num_cases))
@@ -62,8 +66,8 @@ def _num_objects(cfg: SimulationConfig, num_cases: int) -> int:
 
 
 def _object_name(cfg: SimulationConfig, k: int) -> str:
-    if cfg.phantom == "random":
-        return f"random-seed{_seed(cfg.seed, 0, k)}"
+    if cfg.phantom in PHANTOM_FAMILIES:
+        return f"{cfg.phantom}-seed{_seed(cfg.seed, 0, k)}"
     if cfg.phantom in PHANTOMS:
         return cfg.phantom
     return Path(cfg.phantom).name
@@ -137,7 +141,8 @@ def simulate_dataset(
 
     Args:
         output_dir: output directory (created).
-        phantom: ``"shepp-logan"``, ``"shepp-logan-asym"``, ``"random"`` or a path to a CT (NIfTI file or
+        phantom: ``"shepp-logan"``, ``"shepp-logan-asym"``, ``"random"``, ``"synth"`` (synthetic anatomy for domain
+            randomization, :mod:`monai_rigidreg.simulation.synth`) or a path to a CT (NIfTI file or
             DICOM directory, HU).
         protocol: ``"paper"`` or ``"random"``.
         num_cases: number of cases (``None``: all 63 ``paper`` cases, 64 ``random`` ones).

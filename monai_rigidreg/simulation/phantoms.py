@@ -1,4 +1,5 @@
-"""Phantoms: the 3D modified Shepp-Logan head, an asymmetric variant, a random anthropomorphic family and real CTs.
+"""Phantoms: the 3D modified Shepp-Logan head, an asymmetric variant, a random anthropomorphic family, synthetic
+anatomy (random label maps with random contrasts, :mod:`~monai_rigidreg.simulation.synth`) and real CTs.
 
 Every phantom becomes a volume of linear attenuation coefficients ``mu`` (1/mm, at 70 keV) on an axis-aligned
 :class:`~monai_rigidreg.geometry.Grid` centred on the isocentre, stored ``[nx, ny, nz]`` (MONAI order).
@@ -23,6 +24,9 @@ from monai_rigidreg.device import resolve_device
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import Grid, rotation_matrix
 from monai_rigidreg.io import load_volume
+
+# the module, not its names: synth.py uses hu_to_mu from this module (see there)
+from monai_rigidreg.simulation import synth as _synth
 from monai_rigidreg.simulation.projector import grid_axes
 
 __all__ = [
@@ -42,7 +46,7 @@ __all__ = [
 MU_WATER: float = 0.0193
 """Linear attenuation of water at 70 keV, 1/mm."""
 
-PHANTOMS: tuple[str, ...] = ("shepp-logan", "shepp-logan-asym", "random")
+PHANTOMS: tuple[str, ...] = ("shepp-logan", "shepp-logan-asym", "random", "synth")
 """Names of the built-in phantoms (anything else is read as a path to a CT)."""
 
 
@@ -318,9 +322,11 @@ def make_phantom(
     """Attenuation volume ``[nx, ny, nz]`` (1/mm) of a named phantom or a CT file, and a JSON-able description.
 
     Args:
-        phantom: ``"shepp-logan"``, ``"shepp-logan-asym"``, ``"random"`` or a path to a CT.
+        phantom: ``"shepp-logan"``, ``"shepp-logan-asym"``, ``"random"``, ``"synth"`` (synthetic anatomy,
+            :func:`~monai_rigidreg.simulation.synth.synth_phantom`, defined in mm so that every grid shows the
+            same object; ``supersample`` does not apply) or a path to a CT.
         grid: object grid (axis-aligned, centred on the isocentre).
-        seed: seed of the random family.
+        seed: seed of the random and synthetic families.
         supersample: sub-samples per voxel and axis for analytic phantoms.
         radius_mm: half-size of analytic phantoms, mm (default: half the smallest extent of ``grid``).
         device: torch device.
@@ -334,6 +340,9 @@ def make_phantom(
     elif name == "random":
         shapes = random_phantom_shapes(seed, radius_mm)
         desc = {"phantom": name, "seed": int(seed), "radius_mm": radius_mm}
+    elif name == "synth":
+        desc = {"phantom": name, "seed": int(seed), "radius_mm": radius_mm}
+        return _synth.synth_phantom(grid, seed, radius_mm=radius_mm, device=device), desc
     else:
         img = load_ct(name)
         desc = {"phantom": "ct", "path": str(Path(name).resolve())}
