@@ -64,7 +64,7 @@ def registration_pairs(fixed: str | Path | None = None, moving: str | Path | Non
         if not isinstance(item, dict) or not item.get("fixed") or not item.get("moving"):
             raise InputError(f"item {i} of the datalist lacks 'fixed' or 'moving'", path)
         items.append({**item, "fixed": str(root / item["fixed"]), "moving": str(root / item["moving"]),
-                      "case_id": str(item.get("case_id", f"{i:04d}"))})
+                      "case_id": str(item.get("case_id", f"{i:04d}")), "from_datalist": True})
     return items
 
 
@@ -83,19 +83,31 @@ class RegistrationEvaluator:
     def __init__(self, registrar: RigidRegistrar, dataset: list[dict[str, Any]], output_dir: str | Path,
                  refine: bool = False, overwrite: bool = False, qc: bool = True, fine_stage: bool | None = None,
                  isocenter: Any = None, reg: str = "auto", transform_format: str = "tfm",
-                 progress: bool = True) -> None:
+                 progress: bool = True, patient_position: str | None = None) -> None:
         self.registrar = registrar
         self.dataset = list(dataset)
         self.output_dir = Path(output_dir)
         self.options = {"refine": refine, "overwrite": overwrite, "qc": qc, "fine_stage": fine_stage,
-                        "isocenter": isocenter, "reg": reg, "transform_format": transform_format}
+                        "isocenter": isocenter, "reg": reg, "transform_format": transform_format,
+                        "patient_position": patient_position}
         self.progress = progress
+        # one folder per pair for a datalist (even of one pair), the folder itself for a single --fixed/--moving pair
+        self.subfolders = len(self.dataset) > 1 or any(item.get("from_datalist") for item in self.dataset)
+        names = [self._folder_name(i) for i in range(len(self.dataset))]
+        clashes = sorted({n for n in names if names.count(n) > 1})
+        if self.subfolders and clashes:
+            raise InputError(f"case ids that name the same output folder: {clashes} (folders are the case ids with "
+                             "characters other than letters, digits, '.', '_', '+', '-' replaced by '_'); make them "
+                             "distinct")
+
+    def _folder_name(self, index: int) -> str:
+        name = _SAFE.sub("_", str(self.dataset[index]["case_id"])).lstrip(".")
+        return name or f"{index:04d}"
 
     def output_dir_for(self, index: int) -> Path:
-        """The output folder of pair ``index``."""
-        if len(self.dataset) == 1:
-            return self.output_dir
-        return self.output_dir / (_SAFE.sub("_", self.dataset[index]["case_id"]) or f"{index:04d}")
+        """The output folder of pair ``index``: ``output_dir/<case_id>`` (sanitised, never hidden or ``..``) for a
+        datalist, ``output_dir`` itself for a single pair."""
+        return self.output_dir / self._folder_name(index) if self.subfolders else self.output_dir
 
     def run(self) -> dict[str, Any]:
         """Register all pairs; returns ``{"done": [...], "failed": [{"case_id", "error"}], "cases_per_second"}``.
@@ -113,8 +125,8 @@ class RegistrationEvaluator:
                                fixed_series_uid=item.get("fixed_series_uid"),
                                moving_series_uid=item.get("moving_series_uid"), **self.options)
                 done.append(item["case_id"])
-            except RigidRegError as exc:
-                if len(self.dataset) == 1:
+            except (RigidRegError, OSError) as exc:  # bad input or a file-system refusal: this pair only
+                if not self.subfolders:
                     raise
                 logger.error("pair %s skipped: %s", item["case_id"], exc)
                 failed.append({"case_id": item["case_id"], "error": str(exc)})

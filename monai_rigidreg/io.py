@@ -99,6 +99,9 @@ def check_output_dir(path: str | Path, overwrite: bool = False, allow_existing: 
         raise InputError("an output folder name is longer than 255 bytes", p)
     if p.exists() and not p.is_dir():
         raise OutputExistsError(p, "it is a file, not a folder; choose another --output-dir")
+    if p.resolve() in (Path.cwd().resolve(), Path(p.resolve().anchor)):
+        raise InputError("the output folder is the current folder (or the file-system root): name a sub-folder, "
+                         "e.g. --output-dir reg_out", p)
     if p.is_dir() and any(p.iterdir()) and not (overwrite or allow_existing):
         raise OutputExistsError(p)
     return p

@@ -19,7 +19,7 @@ from typing import Any
 import SimpleITK as sitk
 
 from monai_rigidreg import __version__
-from monai_rigidreg.couch import couch_shifts
+from monai_rigidreg.couch import couch_shifts, lps_to_iec
 from monai_rigidreg.dicom_reg import SeriesReference, series_reference, write_spatial_registration
 from monai_rigidreg.elastix_params import ELASTIX_PARAMETER_FILE, write_elastix_transform
 from monai_rigidreg.errors import InputError, RigidRegError, Terminated, sigterm_raises
@@ -32,10 +32,10 @@ from monai_rigidreg.io import (
     save_volume,
     write_transform,
 )
-from monai_rigidreg.provenance import registration_provenance
+from monai_rigidreg.provenance import input_record, registration_provenance
 from monai_rigidreg.qc import qc_figure
 from monai_rigidreg.registration import RegistrationResult, RigidRegistrar, _check_steps
-from monai_rigidreg.staging import staged_output_dir
+from monai_rigidreg.staging import check_replaceable, staged_output_dir
 
 __all__ = [
     "OUTPUT_FILES",
@@ -103,7 +103,7 @@ def write_outputs(
         raise InputError(f"transform format must be one of {TRANSFORM_FORMATS}, got {transform_format!r}")
     out = Path(output_dir)
     fill = float(sitk.GetArrayViewFromImage(moving).min())  # io.resample's default: air for a CT
-    with staged_output_dir(out, overwrite) as tmp:
+    with staged_output_dir(out, overwrite, replaceable=OUTPUT_FILES) as tmp:
         write_transform(result.transform, tmp / f"transform.{transform_format}")
         write_elastix_transform(tmp / ELASTIX_PARAMETER_FILE, result.params, result.center, fixed, fill)
         registered = result.registered if result.registered is not None else resample(moving, fixed, result.transform,
@@ -137,6 +137,7 @@ def register_files(
     reg: str = "auto",
     transform_format: str = "tfm",
     fine_stage: bool | None = None,
+    patient_position: str | None = None,
 ) -> dict[str, Path]:
     """Load both volumes, register them and write the standard outputs.
 
@@ -157,6 +158,10 @@ def register_files(
         reg: ``registration.dcm``: one of :data:`REG_MODES`.
         transform_format: ``"tfm"`` or ``"h5"`` (the ITK transform file).
         fine_stage: ``False``: the learned regression alone (see :func:`~monai_rigidreg.registration.register`).
+        patient_position: DICOM Patient Position of the CT (``HFS``, ``FFS``, ...) for the couch axes; default the
+            CT's DICOM header, else head-first supine (assumed, with a warning). A value given here that the couch
+            shifts do not support is refused before registering; one read from the header gives a warning and no
+            couch shifts.
 
     Returns:
         ``{file name: path}`` of the files written (the result itself is in ``result.json``).
@@ -167,6 +172,7 @@ def register_files(
         raise InputError(f"--transform-format must be one of {TRANSFORM_FORMATS}, got {transform_format!r}")
     iso = None if isocenter is None else _point(isocenter, "isocenter")
     refs, reg_warning = dicom_references(fixed, moving, fixed_series_uid, moving_series_uid, reg)
+    position, position_source, position_problem = _patient_position(fixed, fixed_series_uid, patient_position)
     fixed_img = load_volume(fixed, series_uid=fixed_series_uid)
     moving_img = load_volume(moving, series_uid=moving_series_uid)
     result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps, fine_stage=fine_stage)
@@ -175,11 +181,16 @@ def register_files(
     if reg_warning:
         logger.warning("%s", reg_warning)
         result.details.setdefault("warnings", []).append(reg_warning)
-    position = result.provenance["inputs"]["fixed"].get("patient_position") or None
     source = "--isocenter" if iso is not None else "CBCT centre (default)"
     if iso is None:
         iso = Grid.from_sitk(moving_img).center()
-    result.couch_shift = {**couch_shifts(result.matrix, position, iso).to_dict(), "isocentre_source": source}
+    if position_problem:
+        logger.warning("%s", position_problem)
+        result.details.setdefault("warnings", []).append(position_problem)
+        result.couch_shift = {"unavailable": position_problem}
+    else:
+        result.couch_shift = {**couch_shifts(result.matrix, position, iso).to_dict(), "isocentre_source": source,
+                              "patient_position_source": position_source}
     paths = write_outputs(result, fixed_img, moving_img, output_dir, overwrite=overwrite, qc=qc,
                           names=(Path(fixed).name, Path(moving).name), transform_format=transform_format,
                           dicom_references=refs)
@@ -216,6 +227,9 @@ def dicom_references(fixed: str | Path, moving: str | Path, fixed_series_uid: st
     else:
         try:
             refs = (series_reference(fixed, fixed_series_uid), series_reference(moving, moving_series_uid))
+            if refs[0].patient_id and refs[1].patient_id and refs[0].patient_id != refs[1].patient_id:
+                raise InputError(f"the CT and the CBCT name different patients (Patient ID {refs[0].patient_id!r} "
+                                 f"and {refs[1].patient_id!r})")
             if refs[0].frame_of_reference_uid == refs[1].frame_of_reference_uid:
                 raise InputError("the CT and the CBCT share one Frame of Reference UID "
                                  f"({refs[0].frame_of_reference_uid}), so no registration between two frames can be "
@@ -226,6 +240,23 @@ def dicom_references(fixed: str | Path, moving: str | Path, fixed_series_uid: st
     if reg == "on":
         raise InputError(why.replace(" written:", " can be written:", 1))
     return None, why
+
+
+def _patient_position(fixed: str | Path, series_uid: str | None, given: str | None) -> tuple[str | None, str, str]:
+    """``(position or None, where it came from, why no couch shifts can be given or "")``, before registering."""
+    if given:
+        lps_to_iec(given)  # InputError for an unsupported value the user gave: before any work
+        return given.strip().upper(), "--patient-position", ""
+    if not Path(fixed).is_dir():
+        return None, "assumed (no DICOM header)", ""
+    header = input_record(fixed, series_uid).get("patient_position") or None
+    if header is None:
+        return None, "assumed (no Patient Position in the CT's header)", ""
+    try:
+        lps_to_iec(header)
+    except InputError as exc:
+        return None, "CT DICOM header", f"no couch shifts: the CT's {exc}"
+    return header, "CT DICOM header", ""
 
 
 def _point(value: Any, name: str) -> tuple[float, float, float]:
@@ -267,7 +298,10 @@ def check_register_inputs(
             raise InputError(f"no such file or directory (the {name} image)", path)
     if cascade_steps is not None:
         _check_steps(cascade_steps)
-    return check_output_dir(output_dir, overwrite)
+    out = check_output_dir(output_dir, overwrite)
+    if overwrite:
+        check_replaceable(out, OUTPUT_FILES)  # never delete what this package did not write, e.g. the inputs
+    return out
 
 
 @contextlib.contextmanager

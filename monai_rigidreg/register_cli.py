@@ -37,6 +37,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--overwrite", action="store_true", help="replace an existing output directory")
     p.add_argument("--isocenter", default=None, metavar="X,Y,Z",
                    help="plan isocentre in CT coordinates (LPS mm) for the couch shifts (default: the CBCT centre)")
+    p.add_argument("--patient-position", default=None, metavar="POS",
+                   help="DICOM Patient Position of the CT for the couch shifts (HFS, HFP, FFS, FFP, HFDL, HFDR, FFDL, "
+                   "FFDR; default: the CT's DICOM header, else HFS assumed with a warning)")
     p.add_argument("--reg", choices=("auto", "on", "off"), default="auto",
                    help="write registration.dcm: auto (when both inputs are DICOM series with their own frames of "
                    "reference; otherwise a warning says why not), on (required: refused before registering when it "
@@ -71,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
                            overwrite=args.overwrite, qc=not args.no_qc, cascade_steps=args.cascade_steps,
                            fixed_series_uid=args.fixed_series_uid, moving_series_uid=args.moving_series_uid,
                            isocenter=args.isocenter, reg=args.reg, transform_format=args.transform_format,
-                           fine_stage=False if args.no_fine_stage else None)
+                           fine_stage=False if args.no_fine_stage else None, patient_position=args.patient_position)
     summary = json.loads(paths["result.json"].read_text())
     couch = summary.get("couch_shift", {})
     print(json.dumps({"params": summary["params"], "confidence": round(summary["confidence"], 3),
@@ -97,7 +100,8 @@ def _run_batch(args: argparse.Namespace, registrar_cls: Any, evaluator_cls: Any,
     registrar = registrar_cls.from_bundle(args.bundle, device=args.device)
     evaluator = evaluator_cls(registrar, pairs, args.output_dir, refine=args.refine, overwrite=args.overwrite,
                               qc=not args.no_qc, fine_stage=False if args.no_fine_stage else None,
-                              isocenter=args.isocenter, reg=args.reg, transform_format=args.transform_format)
+                              isocenter=args.isocenter, reg=args.reg, transform_format=args.transform_format,
+                              patient_position=args.patient_position)
     summary = evaluator.run()  # BatchFailures (exit status 2) names the pairs that failed
     print(json.dumps(summary, indent=2))
     return 0

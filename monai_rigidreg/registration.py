@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -180,6 +181,8 @@ class RigidRegistrar:
         self.cascade_steps = _check_steps(cascade_steps)
         self.hu_range = hu_range
         self.inferer = inferer
+        # one registration at a time per registrar: fine_stage_switch changes the shared network's setting
+        self._lock = threading.RLock()
         self.source: dict[str, Any] = {}  # the bundle and weights it came from (from_bundle), for the audit trail
         self._resampler = ResampleToNetworkGrid(self.network_size, self.network_spacing, padding_value=hu_range[0])
         self._normalize = NormalizeHU(a_min=hu_range[0], a_max=hu_range[1])
@@ -277,7 +280,7 @@ class RigidRegistrar:
         """Register ``moving`` (CBCT) to ``fixed`` (CT); see :func:`register` (``fine_stage=False``: the learned
         regression alone, also in the confidence check's swapped-input estimate; ``None``: as the network is
         configured, e.g. by the bundle's ``fine_stage``)."""
-        with fine_stage_switch(self.network, fine_stage):
+        with self._lock, fine_stage_switch(self.network, fine_stage):
             result = self._register(fixed, moving, refine, cascade_steps, resample_moving, moving_fov, assess)
             used = getattr(self.network, "fine_stage", None) is not None and getattr(
                 self.network, "fine_stage_enabled", True)

@@ -13,28 +13,36 @@ import functools
 import os
 import secrets
 import shutil
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from pathlib import Path
 from typing import Any
 
 from monai_rigidreg.errors import OutputExistsError, sigterm_raises
 from monai_rigidreg.io import check_output_dir, make_dirs, remove_made_dirs
 
-__all__ = ["staged_output_dir"]
+__all__ = ["staged_output_dir", "check_replaceable"]
 
 
 @contextlib.contextmanager
-def staged_output_dir(output_dir: str | Path, overwrite: bool = False) -> Iterator[Path]:
+def staged_output_dir(output_dir: str | Path, overwrite: bool = False,
+                      replaceable: Collection[str] | None = None) -> Iterator[Path]:
     """``with staged_output_dir(out) as tmp:`` write into ``tmp``, a new hidden sibling of ``out``; at the end of
     the block ``tmp`` is renamed to ``out`` (as :func:`write_outputs` describes). If the block raises (including
     Ctrl-C, and SIGTERM where nothing else handles it), ``tmp`` and the parent folders made for it are removed and
     ``out`` is left as it was.
+
+    ``overwrite`` replaces an existing ``out`` only where every entry in it is one of the names in ``replaceable``
+    (the files this writer makes): a folder that also holds anything else (the input images, notes) is refused
+    before anything runs, so ``--overwrite`` can never delete what it did not write. ``None``: any folder (callers
+    that own the whole folder).
 
     Raises:
         OutputExistsError, InputError: as :func:`~monai_rigidreg.io.check_output_dir`, before the block runs, or
             :class:`~monai_rigidreg.errors.OutputExistsError` at the end where another process filled ``out``.
     """
     out = check_output_dir(output_dir, overwrite)
+    if overwrite and replaceable is not None:
+        check_replaceable(out, replaceable)
     if out.is_symlink():
         out = out.resolve()  # a link to a folder: the folder is what gets replaced, the link stays
     with sigterm_raises(only_if_default=True):  # the command line installs its own handler for the whole run
@@ -49,6 +57,19 @@ def staged_output_dir(output_dir: str | Path, overwrite: bool = False) -> Iterat
                 shutil.rmtree(tmp, ignore_errors=True)
             remove_made_dirs(made)
             raise
+
+
+def check_replaceable(out: str | Path, replaceable: Collection[str]) -> None:
+    """Refuse to replace ``out`` (with ``--overwrite``) where it holds anything but entries named in
+    ``replaceable``: it would delete what this package did not write (the input images, for example)."""
+    p = Path(out)
+    if not p.is_dir():
+        return
+    foreign = sorted(e.name for e in p.iterdir() if e.name not in set(replaceable))
+    if foreign:
+        raise OutputExistsError(p, f"--overwrite replaces only a folder of earlier outputs, and this one also holds "
+                                   f"{', '.join(foreign[:5])}{' ...' if len(foreign) > 5 else ''}; choose another "
+                                   "--output-dir")
 
 
 def _sibling_name(out: Path, tag: str) -> Path:

@@ -55,11 +55,22 @@ def test_register_datalist_registers_every_pair_and_skips_the_broken_one(pairs_f
 def test_evaluator_one_pair_writes_into_the_folder_itself_and_raises_its_error(pairs_file, tmp_path):
     items = registration_pairs(datalist=pairs_file, dataset_dir=pairs_file.parent)
     assert [i["case_id"] for i in items] == ["case0", "case1", "broken"]
+    # a datalist of one pair still writes out/<case_id>; a single --fixed/--moving pair writes into the folder
     summary = RegistrationEvaluator(small_registrar_for_tests(), items[:1], tmp_path / "one", qc=False).run()
-    assert summary["done"] == ["case0"] and (tmp_path / "one" / "result.json").is_file()
+    assert summary["done"] == ["case0"] and (tmp_path / "one" / "case0" / "result.json").is_file()
+    single = registration_pairs(items[0]["fixed"], items[0]["moving"])
+    RegistrationEvaluator(small_registrar_for_tests(), single, tmp_path / "single", qc=False).run()
+    assert (tmp_path / "single" / "result.json").is_file()
     with pytest.raises(InputError, match="no such file"):
-        RegistrationEvaluator(small_registrar_for_tests(), items[2:], tmp_path / "bad", qc=False).run()
+        RegistrationEvaluator(small_registrar_for_tests(), registration_pairs(items[2]["fixed"], items[2]["moving"]),
+                              tmp_path / "bad", qc=False).run()
     assert not (tmp_path / "bad").exists()
+    # case ids that would share a folder (or hide it) are refused before any work
+    clash = [{**items[0], "case_id": "pt 1"}, {**items[1], "case_id": "pt_1"}]
+    with pytest.raises(InputError, match="same output folder"):
+        RegistrationEvaluator(small_registrar_for_tests(), clash, tmp_path / "clash")
+    dots = RegistrationEvaluator(small_registrar_for_tests(), [{**items[0], "case_id": ".."}, items[1]], tmp_path)
+    assert dots.output_dir_for(0) == tmp_path / "0000"
     with pytest.raises(InputError, match="not both"):
         registration_pairs("a", "b", datalist=pairs_file)
 

@@ -125,3 +125,49 @@ def test_transformix_applies_the_parameter_file_to_reproduce_registered(pair, tm
     want = sitk.GetArrayFromImage(load_volume(out / "registered.nii.gz"))
     assert got.shape == want.shape
     np.testing.assert_allclose(got, want, atol=1e-2 * float(np.ptp(want)))
+
+
+def test_overwrite_never_deletes_what_it_did_not_write(pair, tmp_path, monkeypatch):
+    """--overwrite replaces only a folder of earlier outputs: one that also holds the inputs is refused, intact."""
+    case = tmp_path / "case1"
+    case.mkdir()
+    shutil.copy(pair["fixed"], case / "ct.nii.gz")
+    shutil.copy(pair["moving"], case / "cbct.nii.gz")
+    (case / "notes.txt").write_text("keep me")
+    assert main(["register", "--fixed", str(case / "ct.nii.gz"), "--moving", str(case / "cbct.nii.gz"),
+                 "--output-dir", str(case), "--overwrite", "--no-qc"]) == 2
+    assert sorted(p.name for p in case.iterdir()) == ["cbct.nii.gz", "ct.nii.gz", "notes.txt"]
+    out = tmp_path / "out"  # a folder of earlier outputs is replaced
+    assert main(["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir", str(out)]) == 0
+    assert main(["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir", str(out),
+                 "--overwrite"]) == 0
+    monkeypatch.chdir(tmp_path / "out")  # the current folder itself is never an output folder
+    assert main(["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir", "."]) == 2
+
+
+def test_patient_position_option_header_and_unsupported_values(pair, dicom_pair, tmp_path):
+    runs = {}
+    for name, extra in (("hfs", []), ("ffs", ["--patient-position", "FFS"])):
+        out = tmp_path / name
+        assert main(["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir", str(out),
+                     "--no-qc", *extra]) == 0
+        runs[name] = json.loads((out / "result.json").read_text())["couch_shift"]
+    assert runs["ffs"]["patient_position"] == "FFS" and runs["ffs"]["patient_position_source"] == "--patient-position"
+    # feet first: patient left is IEC -X and superior is -Y, so lateral and longitudinal change sign
+    np.testing.assert_allclose(runs["ffs"]["3dof"]["lateral"], -runs["hfs"]["3dof"]["lateral"], atol=1e-9)
+    np.testing.assert_allclose(runs["ffs"]["3dof"]["longitudinal"], -runs["hfs"]["3dof"]["longitudinal"], atol=1e-9)
+    assert main(["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir",
+                 str(tmp_path / "sitting"), "--patient-position", "SITTING"]) == 2
+    assert not (tmp_path / "sitting").exists()
+    # a header value the couch model does not support: the registration is written, the couch shifts say why not
+    ct = tmp_path / "ct_sitting"
+    shutil.copytree(dicom_pair[0], ct)
+    for f in ct.iterdir():
+        ds = pydicom.dcmread(f)
+        ds.PatientPosition = "SITTING"
+        ds.save_as(f)
+    out = tmp_path / "from_header"
+    assert main(["register", "--fixed", str(ct), "--moving", str(dicom_pair[1]), "--output-dir", str(out),
+                 "--no-qc"]) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert "unsupported patient position" in result["couch_shift"]["unavailable"]
