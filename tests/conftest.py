@@ -132,3 +132,16 @@ def small_registrar_for_tests(cascade_steps: int = 1):
     net = DualEncoderRigidNet(channels=(4, 8, 8, 8), pool_size=2)
     return RigidRegistrar(net, network_size=(32, 32, 32), network_spacing=(8.0, 8.0, 8.0),
                           cascade_steps=cascade_steps, device="cpu")
+
+
+def resampled_with_truth(fixed, moving, fov, transform):
+    """``(fixed, registered, raw, mask)`` arrays for checking a simulated pair's ground truth: the CBCT resampled on
+    the CT grid with the true transform and with the identity, and the voxels both place inside the CBCT's FOV."""
+    def on_fixed(image, tfm, interpolator, fill):
+        return sitk.GetArrayFromImage(sitk.Resample(image, fixed, tfm, interpolator, fill))
+
+    reg = on_fixed(moving, transform, sitk.sitkLinear, -1000.0)
+    raw = on_fixed(moving, sitk.Transform(), sitk.sitkLinear, -1000.0)
+    mask = (on_fixed(fov, transform, sitk.sitkNearestNeighbor, 0) > 0) & (
+        on_fixed(fov, sitk.Transform(), sitk.sitkNearestNeighbor, 0) > 0)
+    return sitk.GetArrayFromImage(fixed), reg, raw, mask

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 import torch
-from conftest import TINY_SIM
+from conftest import TINY_SIM, resampled_with_truth
 
 from monai_rigidreg.geometry import Grid, params_to_sitk
 from monai_rigidreg.image_ops import erode, gradient_magnitude
@@ -142,12 +142,7 @@ def test_simulated_pair_matches_the_known_motion(tmp_path):
     pair = simulate_pair(tmp_path, phantom="synth", params=params, seed=2, device="cpu", **TINY_SIM)
     fixed, moving = sitk.ReadImage(pair["fixed"]), sitk.ReadImage(pair["moving"])
     fov = sitk.ReadImage(pair["moving_fov"])
-    tfm = params_to_sitk(pair["params"], pair["center"])
-    reg = sitk.GetArrayFromImage(sitk.Resample(moving, fixed, tfm, sitk.sitkLinear, -1000.0))
-    raw = sitk.GetArrayFromImage(sitk.Resample(moving, fixed, sitk.Transform(), sitk.sitkLinear, -1000.0))
-    mask = sitk.GetArrayFromImage(sitk.Resample(fov, fixed, tfm, sitk.sitkNearestNeighbor, 0)) > 0
-    mask &= sitk.GetArrayFromImage(sitk.Resample(fov, fixed, sitk.Transform(), sitk.sitkNearestNeighbor, 0)) > 0
-    f = sitk.GetArrayFromImage(fixed)
+    f, reg, raw, mask = resampled_with_truth(fixed, moving, fov, params_to_sitk(pair["params"], pair["center"]))
     assert f.max() > 200 and (f < -900).mean() > 0.1  # bone and air in the Sim-CT
     assert _ncc(f[mask], reg[mask]) > 0.9
     body = mask & (f > -500.0)  # inside the body, where air/body contrast does not dominate the correlation

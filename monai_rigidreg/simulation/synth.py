@@ -444,19 +444,14 @@ def synth_hu_volume(
     return (1000.0 * (d - 1.0)).clamp_(-1000.0, top)
 
 
+_LABEL_OPTIONS = ("num_labels", "smoothness_mm", "body", "device")
+"""Keywords of :func:`synth_phantom` that go to :func:`synth_label_map`; the others go to :func:`synth_hu_volume`."""
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # Phantom
 # ---------------------------------------------------------------------------------------------------------------
-def synth_phantom(
-    grid: Grid,
-    seed: int,
-    num_labels: int | Sequence[int] = (8, 24),
-    smoothness_mm: float | Sequence[float] = (8.0, 30.0),
-    body: bool = True,
-    radius_mm: float | None = None,
-    device: str | torch.device | None = "cpu",
-    **hu_options: Any,
-) -> torch.Tensor:
+def synth_phantom(grid: Grid, seed: int, radius_mm: float | None = None, **options: Any) -> torch.Tensor:
     """Attenuation volume (1/mm, 70 keV) of a synthetic anatomy: :func:`synth_label_map`, then
     :func:`synth_hu_volume` (same seed), then :func:`~monai_rigidreg.simulation.phantoms.hu_to_mu`.
 
@@ -467,14 +462,15 @@ def synth_phantom(
     Args:
         grid: output grid (LPS mm).
         seed: random seed (int >= 0) of the shapes and the contrast.
-        num_labels, smoothness_mm, body, radius_mm, device: see :func:`synth_label_map`.
-        **hu_options: ``hu_ranges``, ``tissue_classes``, ``texture``, ``bias``, ``blur_mm`` of
-            :func:`synth_hu_volume`.
+        radius_mm: half-size of the object's region (default: from the grid), for both steps.
+        **options: ``num_labels``, ``smoothness_mm``, ``body``, ``device`` of :func:`synth_label_map`, and
+            ``hu_ranges``, ``tissue_classes``, ``texture``, ``bias``, ``blur_mm`` of :func:`synth_hu_volume`.
 
     Returns:
         ``[nx, ny, nz]`` float32 attenuation (1/mm), ``>= 0``.
     """
     r = float(radius_mm) if radius_mm is not None else _default_radius(grid)
-    labels = synth_label_map(grid, seed, num_labels, smoothness_mm, body, r, device)
-    hu = synth_hu_volume(labels, seed, grid, radius_mm=r, **hu_options)
+    label_options = {k: options.pop(k) for k in _LABEL_OPTIONS if k in options}
+    labels = synth_label_map(grid, seed, radius_mm=r, **label_options)
+    hu = synth_hu_volume(labels, seed, grid, radius_mm=r, **options)
     return _phantoms.hu_to_mu(hu)
