@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -17,6 +19,13 @@ from monai_rigidreg.transforms import (
 )
 
 __all__ = ["registration_transforms", "IMAGE_KEYS", "MASK_KEY"]
+
+# With pydicom installed (a dependency, for the DICOM Spatial Registration), MONAI's LoadImage builds its pydicom
+# reader and announces, once per construction, that the optional nvImageCodec GPU decoder is absent: a logger warning
+# and a UserWarning about a reader these NIfTI datalists never use. Silenced here, narrowly, so training logs stay
+# readable; any other warning of MONAI's still shows.
+logging.getLogger("monai.data.nvimgcodec_pydicom_plugin").setLevel(logging.ERROR)
+warnings.filterwarnings("ignore", message="NvImgCodecPydicomReader: nvImageCodec decoder plugin did not register")
 
 IMAGE_KEYS = ("moving", "fixed")
 MASK_KEY = "moving_fov"
