@@ -85,7 +85,8 @@ def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=D
         registrar = RigidRegistrar.from_bundle(bundle, device=device)
         result = registrar(fixed, moving, refine=refine)
         logger.info("demo 3/3: writing the outputs and the QC figure")
-        paths = write_outputs(result, fixed, moving, out / "registration", overwrite=True)
+        paths = write_outputs(result, fixed, moving, out / "registration", overwrite=True,
+                              names=(Path(sim["fixed"]).name, Path(sim["moving"]).name))
         truth = np.asarray(sim["params"], dtype=np.float64)
         tre = float(target_registration_error(result.params, truth, body_points(fixed), center=result.center))
         report = {
