@@ -23,6 +23,7 @@ __all__ = [
     "list_dicom_series",
     "select_dicom_series",
     "describe_dicom_series",
+    "header_tags",
     "check_distinct_inputs",
     "read_dicom_series",
     "SLICE_GAP_TOLERANCE",
@@ -74,20 +75,21 @@ def select_dicom_series(directory: str | Path, series_uid: str | None = None,
 def describe_dicom_series(directory: str | Path) -> list[dict[str, Any]]:
     """One line of facts per image series of a DICOM directory, largest first: ``uid``, ``modality``,
     ``description`` (Series Description), ``slices`` (number of files), read from each series' first file header."""
-    rows = []
-    for uid, files in list_dicom_series(directory).items():
-        reader = sitk.ImageFileReader()
-        reader.SetFileName(files[0])
-        info = {"uid": uid, "modality": "", "description": "", "slices": len(files)}
-        try:
-            reader.ReadImageInformation()
-            for key, tag in (("modality", "0008|0060"), ("description", "0008|103e")):
-                if reader.HasMetaDataKey(tag):
-                    info[key] = reader.GetMetaData(tag).strip()
-        except RuntimeError:  # an unreadable header: the UID and the count still identify the series
-            pass
-        rows.append(info)
+    rows = [{"uid": uid, **header_tags(files[0], {"modality": "0008|0060", "description": "0008|103e"}),
+             "slices": len(files)} for uid, files in list_dicom_series(directory).items()]
     return sorted(rows, key=lambda r: -r["slices"])
+
+
+def header_tags(path: str | Path, tags: dict[str, str]) -> dict[str, str]:
+    """``{name: value}`` of the DICOM header ``tags`` (``{name: "gggg|eeee"}``) of one file, read without its pixels;
+    ``""`` where a tag is absent or the header cannot be read (the series' UID and file count still identify it)."""
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    try:
+        reader.ReadImageInformation()
+    except RuntimeError:
+        return dict.fromkeys(tags, "")
+    return {name: reader.GetMetaData(tag).strip() if reader.HasMetaDataKey(tag) else "" for name, tag in tags.items()}
 
 
 def check_distinct_inputs(fixed: str | Path, moving: str | Path, fixed_series_uid: str | None = None,

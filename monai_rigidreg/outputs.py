@@ -32,7 +32,7 @@ from monai_rigidreg.io import (
     save_volume,
     write_transform,
 )
-from monai_rigidreg.provenance import input_record, registration_provenance
+from monai_rigidreg.provenance import registration_provenance
 from monai_rigidreg.qc import qc_figure
 from monai_rigidreg.registration import RegistrationResult, RigidRegistrar, _check_steps
 from monai_rigidreg.staging import check_replaceable, staged_output_dir
@@ -172,12 +172,14 @@ def register_files(
         raise InputError(f"--transform-format must be one of {TRANSFORM_FORMATS}, got {transform_format!r}")
     iso = None if isocenter is None else _point(isocenter, "isocenter")
     refs, reg_warning = dicom_references(fixed, moving, fixed_series_uid, moving_series_uid, reg)
-    position, position_source, position_problem = _patient_position(fixed, fixed_series_uid, patient_position)
+    # the audit trail's header facts are read once, before registering; the couch axes come from them
+    provenance = registration_provenance(fixed, moving, fixed_series_uid, moving_series_uid,
+                                         bundle=getattr(registrar, "source", {}), device=str(registrar.device))
+    position, position_source, position_problem = _patient_position(provenance["inputs"]["fixed"], patient_position)
     fixed_img = load_volume(fixed, series_uid=fixed_series_uid)
     moving_img = load_volume(moving, series_uid=moving_series_uid)
     result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps, fine_stage=fine_stage)
-    result.provenance = registration_provenance(fixed, moving, fixed_series_uid, moving_series_uid,
-                                                bundle=getattr(registrar, "source", {}), device=str(registrar.device))
+    result.provenance = provenance
     if reg_warning:
         logger.warning("%s", reg_warning)
         result.details.setdefault("warnings", []).append(reg_warning)
@@ -242,14 +244,15 @@ def dicom_references(fixed: str | Path, moving: str | Path, fixed_series_uid: st
     return None, why
 
 
-def _patient_position(fixed: str | Path, series_uid: str | None, given: str | None) -> tuple[str | None, str, str]:
-    """``(position or None, where it came from, why no couch shifts can be given or "")``, before registering."""
+def _patient_position(fixed_record: dict[str, Any], given: str | None) -> tuple[str | None, str, str]:
+    """``(position or None, where it came from, why no couch shifts can be given or "")`` from ``--patient-position``
+    or the CT's :func:`~monai_rigidreg.provenance.input_record`, before registering."""
     if given:
         lps_to_iec(given)  # InputError for an unsupported value the user gave: before any work
         return given.strip().upper(), "--patient-position", ""
-    if not Path(fixed).is_dir():
+    if fixed_record.get("format") != "dicom":
         return None, "assumed (no DICOM header)", ""
-    header = input_record(fixed, series_uid).get("patient_position") or None
+    header = fixed_record.get("patient_position") or None
     if header is None:
         return None, "assumed (no Patient Position in the CT's header)", ""
     try:

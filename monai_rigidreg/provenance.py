@@ -19,7 +19,7 @@ from typing import Any
 import SimpleITK as sitk
 
 import monai_rigidreg
-from monai_rigidreg.io import list_dicom_series, select_dicom_series
+from monai_rigidreg.dicom_series import header_tags, list_dicom_series, select_dicom_series
 
 __all__ = ["DICOM_TAGS", "input_record", "bundle_record", "software_versions", "registration_provenance",
            "sha256_of"]
@@ -55,12 +55,7 @@ def input_record(path: str | Path, series_uid: str | None = None) -> dict[str, A
         return record
     series = list_dicom_series(p)
     uid = select_dicom_series(p, series_uid, series)
-    record.update({"format": "dicom", "files": len(series[uid])})
-    reader = sitk.ImageFileReader()
-    reader.SetFileName(series[uid][0])
-    reader.ReadImageInformation()
-    for key, tag in DICOM_TAGS.items():
-        record[key] = reader.GetMetaData(tag).strip() if reader.HasMetaDataKey(tag) else ""
+    record.update({"format": "dicom", "files": len(series[uid]), **header_tags(series[uid][0], DICOM_TAGS)})
     record["series_uid"] = record["series_uid"] or uid
     return record
 
