@@ -95,7 +95,8 @@ def test_bundle_batch_run_with_the_shipped_weights(pairs_file, tmp_path):
     proc = subprocess.run([sys.executable, "-m", "monai.bundle", "run", "--config_file",
                            str(BUNDLE / "configs" / "inference.json"), "--bundle_root", str(BUNDLE), "--datalist",
                            str(pairs_file), "--dataset_dir", str(pairs_file.parent), "--output_dir", str(out)],
-                          capture_output=True, text=True, timeout=400, env=env, cwd=tmp_path)
+                          capture_output=True, text=True,
+                          encoding="utf-8", errors="replace", timeout=400, env=env, cwd=tmp_path)
     assert proc.returncode == 2, proc.stderr[-3000:]
     assert "1 of 3 pairs failed" in proc.stderr and "Traceback" not in proc.stderr
     assert (out / "case0" / "qc.png").is_file() and (out / "case1" / "registration.dcm").exists() is False

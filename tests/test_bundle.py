@@ -48,6 +48,7 @@ METADATA_SCHEMA = {
 def run_bundle(args: list[str], cwd: Path, timeout: int = 400, module: str = "monai.bundle") -> str:
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     proc = subprocess.run([sys.executable, "-m", module, *args], cwd=cwd, capture_output=True, text=True,
+                          encoding="utf-8", errors="replace",
                           timeout=timeout, env=env)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-4000:]
@@ -221,7 +222,8 @@ def test_train_with_default_folders_leaves_the_installed_weights_alone_and_runs_
             "network_def#regression#channels=[4,8,8,8]", "cascade_steps=1", "log_every=1"]
     cmd = [sys.executable, "-m", "monai_rigidreg.cli", "train", "--datalist", str(tiny_dataset), "--val-datalist",
            str(tiny_dataset), "--epochs", "1", "--epoch-length", "1", "--num-workers", "0", "--set", *sets]
-    proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True, timeout=400, env=env)
+    proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True,
+                          encoding="utf-8", errors="replace", timeout=400, env=env)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-3000:]
     assert "TensorBoard is not installed" in out and "Traceback" not in out
@@ -231,6 +233,6 @@ def test_train_with_default_folders_leaves_the_installed_weights_alone_and_runs_
     assert _sha256(shipped) == before
     # asking for the installed bundle's folder is refused before anything runs
     proc = subprocess.run([*cmd[:4], "--ckpt-dir", str(shipped.parent), *cmd[4:]], cwd=work, capture_output=True,
-                          text=True, timeout=120, env=env)
+                          text=True, encoding="utf-8", errors="replace", timeout=120, env=env)
     assert proc.returncode == 2 and "inside the installed monai-rigidreg package" in proc.stderr
     assert "Traceback" not in proc.stderr and _sha256(shipped) == before

@@ -66,7 +66,8 @@ def test_dicom_inputs_get_a_spatial_registration_whose_matrix_inverts_the_transf
     np.testing.assert_allclose(transform_points(matrices["1.2.826.0.1.3680043.8.498.202"], moved), pts, atol=1e-3)
     np.testing.assert_allclose(matrices["1.2.826.0.1.3680043.8.498.201"], np.eye(4))
     if shutil.which("dciodvfy"):
-        proc = subprocess.run(["dciodvfy", str(out / "registration.dcm")], capture_output=True, text=True)
+        proc = subprocess.run(["dciodvfy", str(out / "registration.dcm")], capture_output=True, text=True,
+                              encoding="utf-8", errors="replace")
         assert "Error" not in proc.stdout + proc.stderr, proc.stdout + proc.stderr
 
 

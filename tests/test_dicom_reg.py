@@ -201,7 +201,8 @@ def _dciodvfy(path: Path) -> str:
     exe = shutil.which("dciodvfy")
     if exe is None:
         pytest.skip("dciodvfy is not installed (Debian/Ubuntu package dicom3tools): the IOD validation is skipped")
-    proc = subprocess.run([exe, str(path)], capture_output=True, text=True, timeout=60)
+    proc = subprocess.run([exe, str(path)], capture_output=True, text=True,
+                          encoding="utf-8", errors="replace", timeout=60)
     return proc.stdout + proc.stderr
 
 

@@ -415,6 +415,7 @@ def test_monai_bundle_run_reports_bad_inputs_in_one_line(pair, tmp_path):
                                str(BUNDLE / "configs" / "inference.json"), "--bundle_root", str(BUNDLE),
                                "--moving", pair["moving"], "--output_dir", str(tmp_path / "out"), "--device",
                                "$torch.device('cpu')", *extra], cwd=tmp_path, capture_output=True, text=True,
+                              encoding="utf-8", errors="replace",
                               timeout=300, env=env)
         assert proc.returncode == 2, proc.stderr[-3000:]
         assert message in last_line(proc.stderr) and "Traceback" not in proc.stderr, proc.stderr[-3000:]

@@ -301,7 +301,7 @@ def test_html_report_renders_in_headless_chromium(evaluated, tmp_path):
     cmd = [_chromium(), "--headless", "--disable-gpu", "--no-sandbox", "--hide-scrollbars",
            f"--user-data-dir={tmp_path / 'profile'}", f"--screenshot={shot}", "--window-size=1200,2000",
            (out / "report.html").resolve().as_uri()]
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180)
+    proc = subprocess.run(cmd, capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=180)
     assert shot.is_file(), f"no screenshot (rc {proc.returncode}): {proc.stderr[-2000:]}"
     arr = sitk.GetArrayFromImage(sitk.ReadImage(str(shot)))
     assert arr.shape[:2] == (2000, 1200)

@@ -36,6 +36,7 @@ def _env() -> dict[str, str]:
 
 def _run(cmd: list, cwd: Path, timeout: float = 300) -> subprocess.CompletedProcess:
     proc = subprocess.run([str(c) for c in cmd], cwd=cwd, env=_env(), capture_output=True, text=True,
+                          encoding="utf-8", errors="replace",
                           timeout=timeout)
     assert proc.returncode == 0, f"{cmd} exited {proc.returncode}\nstdout:\n{proc.stdout}\nstderr:\n{proc.stderr}"
     return proc
@@ -68,7 +69,8 @@ def _build_wheel(src: Path, wheels: Path, cwd: Path) -> Path:
         _run([*cmd[:4], "--no-build-isolation", *cmd[4:]], cwd)
     else:
         env = {k: v for k, v in _env().items() if k != "PIP_NO_INDEX"}
-        proc = subprocess.run([str(c) for c in cmd], cwd=cwd, env=env, capture_output=True, text=True, timeout=300)
+        proc = subprocess.run([str(c) for c in cmd], cwd=cwd, env=env, capture_output=True, text=True,
+                              encoding="utf-8", errors="replace", timeout=300)
         if proc.returncode != 0:
             pytest.skip(f"no offline build (setuptools/wheel missing) and pip could not fetch: {proc.stderr[-2000:]}")
     (wheel,) = wheels.glob("monai_rigidreg-*.whl")
