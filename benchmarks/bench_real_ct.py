@@ -227,6 +227,8 @@ def main() -> int:
     ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS),
                     help=f"evaluation methods (default {' '.join(DEFAULT_METHODS)}; also sitk, network+refine)")
     ap.add_argument("--device", default="cpu", help="device of the network (default cpu)")
+    ap.add_argument("--bundle", type=Path, default=None,
+                    help="bundle directory of the network methods (default: the shipped bundle)")
     ap.add_argument("--results", type=Path, default=None, help="also write the printed text to FILE")
     args = ap.parse_args()
     if args.num_cases < 1 or args.threads < 1:
@@ -267,6 +269,7 @@ def main() -> int:
         f"date: {started.isoformat(timespec='seconds')}",
         f"machine: {platform.node()} {platform.machine()}, {os.cpu_count()} CPU cores; threads {args.threads}; "
         f"torch {torch.__version__}, SimpleITK {sitk.Version.VersionString()}; device {args.device}",
+        f"bundle: {args.bundle or 'the shipped bundle'}",
         f"load average at start (1/5/15 min): {' '.join(f'{v:.2f}' for v in os.getloadavg())}",
     ]
     for line in head:
@@ -279,8 +282,8 @@ def main() -> int:
     if not cts:
         out("no CT to benchmark")
         return 2
-    registrar = (RigidRegistrar.from_bundle(device=args.device) if any(m.startswith("network") for m in methods)
-                 else None)
+    registrar = (RigidRegistrar.from_bundle(args.bundle, device=args.device)
+                 if any(m.startswith("network") for m in methods) else None)
     all_rows: list[dict] = []
     per_ct: list[tuple[str, list[dict]]] = []
     timing: list[str] = []

@@ -2,14 +2,16 @@
 
 The data side is the bundle's training chain (:func:`monai_rigidreg.engine.registration_transforms`, ``mode="train"``):
 its deterministic head (load, resample onto the network grid) is cached as ``CacheDataset`` does, and what is timed
-is the random tail every sample pays (rigid motion of the CBCT, CBCT degradation, HU window). The network side is
-one optimisation step of the shipped two-stage network (:class:`~monai_rigidreg.networks.TwoStageRigidNet`, through
+is the random tail every sample pays (isocentre crop, rigid motion of the CBCT on the context grid, cut to the network
+grid, CBCT degradation, HU window), with the motion ranges and isocentre offsets of ``train.json``. The network side is
+one optimisation step of the network ``train.json`` builds (:class:`~monai_rigidreg.networks.TwoStageRigidNet` with
+the learned :class:`~monai_rigidreg.networks.CorrelationRigidNet` and the fine stage off, as trained, through
 :class:`~monai_rigidreg.engine.StagedInferer`) with :class:`~monai_rigidreg.engine.RegistrationCriterion`: the
 shipped training's supervised loss, and the reference's full composite loss. The slower of the two bounds training.
 
 Usage::
 
-    python benchmarks/bench_training_throughput.py --datalist data/val_paper/dataset.json --threads 2
+    python benchmarks/bench_training_throughput.py --datalist data/train.json --threads 2
 """
 
 from __future__ import annotations
@@ -23,10 +25,11 @@ import time
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 import torch  # noqa: E402
+from monai.bundle import ConfigParser  # noqa: E402
 from monai.data import CacheDataset, load_decathlon_datalist  # noqa: E402
 from monai.utils import set_determinism  # noqa: E402
 
-from monai_rigidreg.bundle import bundle_settings, load_bundle_network  # noqa: E402
+from monai_rigidreg.bundle import default_bundle_path  # noqa: E402
 from monai_rigidreg.engine import RegistrationCriterion, RegistrationPrepareBatch, StagedInferer  # noqa: E402
 from monai_rigidreg.engine.data import registration_transforms  # noqa: E402
 from monai_rigidreg.losses import RigidRegistrationLoss  # noqa: E402
@@ -40,7 +43,7 @@ LOSSES = {
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--datalist", default="data/val_paper/dataset.json")
+    ap.add_argument("--datalist", default="data/train.json")
     ap.add_argument("--items", type=int, default=6, help="datalist items cached")
     ap.add_argument("--samples", type=int, default=12, help="samples timed per measurement")
     ap.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 4])
@@ -48,12 +51,17 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     set_determinism(seed=0)
-    settings = bundle_settings()
-    size, spacing = settings["network_size"], settings["network_spacing"]
+    cfg = ConfigParser()
+    cfg.read_config(str(default_bundle_path() / "configs" / "train.json"))
+    size, spacing = cfg["network_size"], cfg["network_spacing"]
+    pre = cfg["train"]["preprocessing"]
     print(f"threads {args.threads}; network grid {size} at {spacing} mm; load {os.getloadavg()[0]:.2f}")
 
     data = load_decathlon_datalist(args.datalist, is_segmentation=False, data_list_key="training")[: args.items]
-    chain = registration_transforms("train", size, spacing, translate_range=20.0, rotate_range=20.0)
+    chain = registration_transforms("train", size, spacing, translate_range=cfg["translate_range"],
+                                    rotate_range=cfg["rotate_range"], axis_prob=cfg["axis_prob"],
+                                    degradation_kwargs=pre["degradation_kwargs"], context_size=cfg["context_size"],
+                                    isocenter_offset=cfg["isocenter_offset"])
     t0 = time.perf_counter()
     dataset = CacheDataset(data, chain, cache_rate=1.0, num_workers=0, progress=False)
     cache_s = (time.perf_counter() - t0) / len(data)
@@ -67,9 +75,10 @@ def main() -> None:
     print("\n| data pipeline | s per sample | samples per second |")
     print("|---|---|---|")
     print(f"| cached head (load + network-grid resampling), once per item | {cache_s:.3f} | {1 / cache_s:.1f} |")
-    print(f"| random tail (motion + CBCT degradation + HU window), per sample | {data_s:.3f} | {1 / data_s:.1f} |")
+    print(f"| random tail (isocentre crop + motion + cut + CBCT degradation + HU window), per sample | {data_s:.3f} | "
+          f"{1 / data_s:.1f} |")
 
-    network, _ = load_bundle_network(device="cpu")
+    network = cfg.get_parsed_content("network_def", instantiate=True)
     network.train()
     prepare, inferer = RegistrationPrepareBatch(), StagedInferer()
     optimizer = torch.optim.Adam(network.parameters(), lr=1e-5)

@@ -176,6 +176,13 @@ class RigidRegistrar:
         if fine is not None and tuple(fine.grid_spacing) != self.grid_spec.spacing:
             raise InputError(f"the network's fine stage works at {tuple(fine.grid_spacing)} mm but the network grid "
                              f"is {self.grid_spec.spacing} mm: give the network_spacing of its bundle")
+        regression = getattr(network, "regression", network)
+        for name, want in (("grid_spacing", self.grid_spec.spacing), ("grid_size", self.grid_spec.size)):
+            have = getattr(regression, name, None)
+            if have is not None and tuple(have) != tuple(want):
+                raise InputError(f"the network's regression is built for a {name.replace('_', ' ')} of "
+                                 f"{tuple(have)} but the network grid has {tuple(want)}: give the network_size and "
+                                 "network_spacing of its bundle")
         self.device = resolve_device(device)
         self.network = network.to(self.device).eval()
         self.cascade_steps = _check_steps(cascade_steps)

@@ -4,8 +4,8 @@
 # motion on the fly (RandRigid6DoFd). Training CBCTs cover the whole object: a truncated field of view would move
 # with the on-the-fly motion and give the motion away, so truncation is added after the motion, in the scanner
 # frame, by RandCBCTDegradationd. The *_interior sets (128 mm FOV, as in the paper) are simulated for evaluation
-# and excluded from train.json. Held out from training: the stock Shepp-Logan phantom, the thorax CT and
-# the random-phantom seeds of benchmarks/bench_registration.py.
+# and excluded from train.json. Held out from training: the stock Shepp-Logan phantom, the thorax CT, the head CT
+# and the random-phantom seeds of benchmarks/bench_registration.py.
 #   usage: scripts/make_training_data.sh [DATA_DIR] [SHARED_DATA_DIR]
 set -euo pipefail
 DATA=${1:-data}
@@ -23,6 +23,11 @@ $SIM --output-dir "$DATA/rand_interior" --phantom random --num-cases 24 --set nu
 wait
 $SIM --output-dir "$DATA/asym_full" --phantom shepp-logan-asym --num-cases 6 --seed 300 $GRID $FULL &
 $SIM --output-dir "$DATA/asym_interior" --phantom shepp-logan-asym --num-cases 6 --seed 301 $GRID $INTERIOR $NOISY &
+wait
+# synthetic anatomy (random label maps, random tissue contrasts, texture, bias fields; simulation/synth.py), with
+# the clinical-dose CBCT physics on half of them
+$SIM --output-dir "$DATA/synth_full" --phantom synth --num-cases 16 --seed 500 $GRID $FULL &
+$SIM --output-dir "$DATA/synth_noisy_full" --phantom synth --num-cases 16 --seed 600 $GRID $FULL $NOISY &
 wait
 if [ -f "$SHARED/abdomen_pelvis_totalsegmentator_example_ct.nii.gz" ]; then
     $SIM --output-dir "$DATA/abdomen" --phantom "$SHARED/abdomen_pelvis_totalsegmentator_example_ct.nii.gz" \

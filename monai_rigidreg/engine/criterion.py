@@ -45,6 +45,9 @@ class RegistrationCriterion(nn.Module):
         w_coarse: weight (per mm) of the supervised point distance of the coarse (regression) estimate, added when
             ``pred`` carries one (``pred["coarse"]``): the fine stage starts from a detached copy of it, so this
             term is what trains the regression of a two-stage network.
+        w_levels: weight (per mm, shared) of the supervised point distance of each intermediate level estimate
+            (``pred["levels"]``, from a regression with levels such as
+            :class:`~monai_rigidreg.networks.CorrelationRigidNet`): deep supervision of its coarse level.
 
     Attributes:
         last_terms: ``{term: float}`` of the last call (unweighted), for handlers.
@@ -57,9 +60,11 @@ class RegistrationCriterion(nn.Module):
         loss: RigidRegistrationLoss | None = None,
         image_loss_pool: int = 2,
         w_coarse: float = 0.5,
+        w_levels: float = 0.5,
     ) -> None:
         super().__init__()
         self.w_coarse = float(w_coarse)
+        self.w_levels = float(w_levels)
         spec = NetworkGridSpec(network_size, network_spacing)
         self.grid = spec.canonical()
         self.image_loss_pool = int(image_loss_pool)
@@ -73,8 +78,9 @@ class RegistrationCriterion(nn.Module):
     def forward(self, pred: torch.Tensor | Mapping[str, torch.Tensor], targets: Mapping[str, torch.Tensor]
                 ) -> torch.Tensor:
         coarse = None
+        levels: list = []
         if isinstance(pred, Mapping):
-            pred, coarse = pred["params"], pred.get("coarse")
+            pred, coarse, levels = pred["params"], pred.get("coarse"), list(pred.get("levels") or [])
         warped = self.warp(targets["moving"], pred)
         fixed = targets["fixed"]
         mask = targets.get("mask")
@@ -94,4 +100,9 @@ class RegistrationCriterion(nn.Module):
             sup_coarse = self.loss.sup_term(coarse, targets["params"], self.grid)
             self.last_terms["coarse"] = float(sup_coarse.detach())
             total = total + self.w_coarse * sup_coarse
+        if levels and self.w_levels != 0 and targets.get("params") is not None:
+            for i, level in enumerate(levels):
+                sup_level = self.loss.sup_term(level, targets["params"], self.grid)
+                self.last_terms[f"level{i}"] = float(sup_level.detach())
+                total = total + self.w_levels * sup_level
         return total

@@ -14,6 +14,7 @@ from monai_rigidreg.transforms import (
     RIGID_KEY,
     NormalizeHUd,
     RandCBCTDegradationd,
+    RandIsocenterCropd,
     RandRigid6DoFd,
     ResampleToNetworkGridd,
 )
@@ -41,6 +42,8 @@ def registration_transforms(
     degrade: bool = True,
     hu_range: tuple[float, float] = (-1000.0, 2000.0),
     degradation_kwargs: dict | None = None,
+    context_size: Sequence[int] | None = None,
+    isocenter_offset: float = 0.0,
 ) -> Compose:
     """Transform chain for a datalist of ``fixed`` / ``moving`` (paths) items with ground truth ``params`` /
     ``matrix`` / ``center`` (as ``monai-rigidreg simulate`` writes) and an optional ``moving_fov`` mask.
@@ -61,16 +64,23 @@ def registration_transforms(
         degrade: apply :class:`~monai_rigidreg.transforms.RandCBCTDegradationd` in training.
         hu_range: HU window mapped to [0, 1].
         degradation_kwargs: overrides of the degradation defaults.
+        context_size: ``train`` only: cache the pair on a larger grid (voxels, at ``network_spacing``) centred on
+            the fixed image, and cut the network grid out of it per sample after the motion (so rotated corners
+            carry anatomy, not padding) around a random isocentre
+            (:class:`~monai_rigidreg.transforms.RandIsocenterCropd`). ``None``: the network grid directly.
+        isocenter_offset: largest offset per axis (mm) of that isocentre from the fixed image centre.
     """
     if mode not in ("train", "val"):
         raise ValueError(f"mode must be 'train' or 'val', got {mode!r}")
     keys = [*IMAGE_KEYS, MASK_KEY]
+    train = mode == "train"
+    context = train and context_size is not None
     xforms: list = [
         LoadImaged(keys=keys, ensure_channel_first=True, image_only=True, allow_missing_keys=True),
         EnsureTyped(keys=keys, dtype="float32", allow_missing_keys=True),
         ResampleToNetworkGridd(
             keys=keys,
-            size=network_size,
+            size=context_size if context else network_size,
             spacing=network_spacing,
             ref_key="fixed",
             mode=("bilinear", "bilinear", "nearest"),
@@ -78,7 +88,9 @@ def registration_transforms(
             allow_missing_keys=True,
         ),
     ]
-    train = mode == "train"
+    if context:
+        xforms.append(RandIsocenterCropd(keys="fixed", size=network_size, max_offset=isocenter_offset,
+                                         spacing=network_spacing, body_threshold=-500.0))
     xforms.append(
         RandRigid6DoFd(
             keys="moving",
@@ -92,6 +104,10 @@ def registration_transforms(
             allow_missing_keys=True,
         )
     )
+    if context:
+        xforms.append(ResampleToNetworkGridd(keys=["moving", MASK_KEY], size=network_size, spacing=network_spacing,
+                                             ref_key="fixed", mode=("bilinear", "nearest"),
+                                             padding_value=(hu_range[0], 0.0), allow_missing_keys=True))
     if train and degrade:
         xforms.append(RandCBCTDegradationd(keys="moving", **(degradation_kwargs or {})))
     xforms.append(NormalizeHUd(keys=IMAGE_KEYS, a_min=hu_range[0], a_max=hu_range[1]))

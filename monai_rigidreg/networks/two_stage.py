@@ -8,17 +8,19 @@ import torch
 from torch import nn
 
 from monai_rigidreg.networks.gauss_newton import GaussNewtonStage
-from monai_rigidreg.networks.rigid_net import DualEncoderRigidNet
 
 __all__ = ["TwoStageRigidNet", "STAGE_KEYS"]
 
 STAGE_KEYS: tuple[str, ...] = ("params", "coarse", "from_coarse")
 """Keys of :meth:`TwoStageRigidNet.forward_stages`: the final estimate, the regression's estimate, and per case
-whether the fine stage went on from the regression's estimate (True) or from the identity (False)."""
+whether the fine stage went on from the regression's estimate (True) or from the identity (False). A regression
+with levels (:class:`~monai_rigidreg.networks.CorrelationRigidNet`) adds ``"levels"``: its estimate after each
+level before the last (a list of ``[B, 6]``), for deep supervision."""
 
 
 class TwoStageRigidNet(nn.Module):
-    """``regression`` (a :class:`~monai_rigidreg.networks.DualEncoderRigidNet`) -> ``fine_stage``
+    """``regression`` (a :class:`~monai_rigidreg.networks.CorrelationRigidNet` or
+    :class:`~monai_rigidreg.networks.DualEncoderRigidNet`) -> ``fine_stage``
     (a :class:`~monai_rigidreg.networks.GaussNewtonStage`, or ``None`` for the regression alone).
 
     The regression gives a coarse estimate in one feed-forward pass; the fine stage refines it on the same network
@@ -41,7 +43,7 @@ class TwoStageRigidNet(nn.Module):
         ``forward_stages``: the same inputs -> ``{"params": [B, 6], "coarse": [B, 6], "from_coarse": [B] bool}``.
     """
 
-    def __init__(self, regression: DualEncoderRigidNet, fine_stage: GaussNewtonStage | None = None,
+    def __init__(self, regression: nn.Module, fine_stage: GaussNewtonStage | None = None,
                  fine_stage_enabled: bool = True) -> None:
         super().__init__()
         self.regression = regression
@@ -60,14 +62,20 @@ class TwoStageRigidNet(nn.Module):
             "--use_trace True --input_shape '[1, 2, 64, 64, 64]' ..., or script the regression alone "
             "(torch.jit.script(net.regression))")
 
-    def forward_stages(self, moving: torch.Tensor, fixed: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward_stages(self, moving: torch.Tensor, fixed: torch.Tensor) -> dict[str, Any]:
         """Both estimates (see :data:`STAGE_KEYS`); ``moving``, ``fixed``: ``[B, C, x, y, z]`` on the network grid."""
-        coarse = self.regression.forward_pair(moving, fixed)
+        extra: dict[str, Any] = {}
+        if hasattr(self.regression, "forward_levels"):
+            levels = self.regression.forward_levels(moving, fixed)
+            coarse = levels[-1]
+            extra["levels"] = levels[:-1]
+        else:
+            coarse = self.regression.forward_pair(moving, fixed)
         if self.fine_stage is None or not self.fine_stage_enabled:
             return {"params": coarse, "coarse": coarse,
-                    "from_coarse": torch.ones(coarse.shape[0], dtype=torch.bool, device=coarse.device)}
+                    "from_coarse": torch.ones(coarse.shape[0], dtype=torch.bool, device=coarse.device), **extra}
         params, from_coarse = self.fine_stage(moving, fixed, coarse)
-        return {"params": params, "coarse": coarse, "from_coarse": from_coarse}
+        return {"params": params, "coarse": coarse, "from_coarse": from_coarse, **extra}
 
     def forward_pair(self, moving: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
         """The final estimate ``[B, 6]`` (mm, degrees, fixed -> moving about the grid centre)."""

@@ -11,6 +11,7 @@ from monai_rigidreg.transforms.grid import (
     ResampleToNetworkGridd,
     network_grid,
 )
+from monai_rigidreg.transforms.isocenter import RandIsocenterCropd
 from monai_rigidreg.transforms.rigid import (
     RIGID_KEY,
     RandRigid6DoF,
@@ -28,6 +29,7 @@ __all__ = [
     "NormalizeHUd",
     "RandCBCTDegradation",
     "RandCBCTDegradationd",
+    "RandIsocenterCropd",
     "RandRigid6DoF",
     "RandRigid6DoFd",
     "ResampleToNetworkGrid",

@@ -1,0 +1,285 @@
+"""Correlation network with a closed-form rigid fit: learned features, local cost volumes, weighted Procrustes.
+
+Where :class:`~monai_rigidreg.networks.DualEncoderRigidNet` asks an MLP to turn a flattened feature map into six
+numbers, this network keeps the geometry explicit, so it has far less to learn:
+
+1. one shared 3D CNN encoder (MONAI ``ResidualUnit`` stages) maps the moving (CBCT) and the fixed (CT) volume to
+   feature maps at 1/4 and 1/8 of the network grid;
+2. for every fixed cell, a cost volume (cosine similarity with the moving features: every moving cell at the
+   coarse level, integer cell shifts within ``+-radius`` at the fine level) and a soft-argmax give its matched
+   position in mm, and a learned per-cell weight (from the fixed features, times the sharpness of the match) says
+   how much to trust it;
+3. the weighted rigid fit of the displacements (Horn's closed-form quaternion solution of the Procrustes problem)
+   gives the transform;
+4. coarse to fine: the estimate of the 1/8 level warps the *original* moving volume (one interpolation), the moving
+   volume is encoded again and the 1/4 level estimates a correction (``fine_passes`` times), composed as
+   ``T = T_coarse o C``.
+
+Every step is differentiable; the supervised loss on the final (and each level's) parameters trains the features
+and the weights. The network is tied to the grid spacing it is built for (``grid_spacing``): the cell positions of
+the rigid fit are in mm.
+
+Frames and units: both inputs are on the same axis-aligned network grid (array axes = LPS x, y, z), the output
+``(tx, ty, tz, rx, ry, rz)`` (mm, degrees) is the fixed -> moving transform ``T(x) = R (x - c) + c + t`` about the
+grid centre ``c`` (see :mod:`monai_rigidreg.geometry`), exactly as :class:`DualEncoderRigidNet`'s.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from monai.networks.blocks import ResidualUnit
+from torch import nn
+
+from monai_rigidreg.geometry import Grid, matrix_to_params_torch
+from monai_rigidreg.warp import warp_volume
+
+__all__ = ["CorrelationRigidNet", "local_cost_volume", "weighted_rigid_fit"]
+
+
+def local_cost_volume(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, radius: int) -> torch.Tensor:
+    """Cosine similarity of each fixed cell with the moving cells at integer shifts within ``+-radius``.
+
+    Args:
+        feat_moving, feat_fixed: ``[B, C, X, Y, Z]`` feature maps on the same cell grid (unit norm along C is
+            applied here).
+        radius: search radius in cells (``K = 2 * radius + 1`` shifts per axis).
+
+    Returns:
+        ``[B, K**3, X, Y, Z]``: entry ``(dx, dy, dz)`` (row-major over ``-radius..radius``) is the similarity of
+        fixed cell ``n`` with moving cell ``n + d``; shifts that leave the moving map give 0.
+    """
+    fm = F.normalize(feat_moving, dim=1)
+    ff = F.normalize(feat_fixed, dim=1)
+    r = int(radius)
+    k = 2 * r + 1
+    x, y, z = ff.shape[2:]
+    padded = F.pad(fm, (r, r, r, r, r, r))
+    costs = []
+    for dx in range(k):
+        for dy in range(k):
+            block = padded[:, :, dx:dx + x, dy:dy + y]  # [B, C, X, Y, Z + 2r]
+            # all z shifts at once: windows of the padded z axis
+            win = block.unfold(4, z, 1)  # [B, C, X, Y, k, Z]
+            costs.append(torch.einsum("bcxyz,bcxykz->bkxyz", ff, win))
+    return torch.cat(costs, dim=1)
+
+
+def weighted_rigid_fit(points_fixed: torch.Tensor, points_moving: torch.Tensor, weights: torch.Tensor,
+                       prior: float = 1e-3) -> torch.Tensor:
+    """Closed-form weighted least-squares rigid transform (Horn's quaternion method), ``moving ~ R fixed + t``.
+
+    Args:
+        points_fixed, points_moving: ``[B, N, 3]`` corresponding points (mm, any common frame).
+        weights: ``[B, N]`` non-negative weights.
+        prior: relative weight of a pull towards the identity rotation (keeps the fit defined when the weighted
+            points are nearly collinear); relative to the weighted spread of the points.
+
+    Returns:
+        ``[B, 4, 4]`` float64 matrices mapping ``points_fixed`` to ``points_moving``.
+
+    The maximal eigenvector of Horn's symmetric 4x4 matrix is the rotation quaternion; its eigenvalue is separated
+    from the others whenever the fit is determined, which keeps ``eigh``'s gradient finite (an SVD of the 3x3 cross-
+    covariance is not: its singular values coincide for the isotropic clouds met here).
+    """
+    p = points_fixed.to(torch.float64)
+    q = points_moving.to(torch.float64)
+    w = weights.to(torch.float64).clamp_min(0) + 1e-12
+    wsum = w.sum(1, keepdim=True)
+    wn = (w / wsum).unsqueeze(-1)  # [B, N, 1]
+    pc = (wn * p).sum(1)
+    qc = (wn * q).sum(1)
+    p0 = p - pc.unsqueeze(1)
+    q0 = q - qc.unsqueeze(1)
+    h = torch.einsum("bni,bnj->bij", wn * p0, q0)  # [B, 3, 3] cross-covariance
+    spread = (wn * p0 * p0).sum((1, 2))
+    h = h + prior * spread.view(-1, 1, 1) * torch.eye(3, dtype=h.dtype, device=h.device)
+    sxx, sxy, sxz = h[:, 0, 0], h[:, 0, 1], h[:, 0, 2]
+    syx, syy, syz = h[:, 1, 0], h[:, 1, 1], h[:, 1, 2]
+    szx, szy, szz = h[:, 2, 0], h[:, 2, 1], h[:, 2, 2]
+    n = torch.stack([
+        torch.stack([sxx + syy + szz, syz - szy, szx - sxz, sxy - syx], -1),
+        torch.stack([syz - szy, sxx - syy - szz, sxy + syx, szx + sxz], -1),
+        torch.stack([szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy], -1),
+        torch.stack([sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz], -1),
+    ], -2)
+    _, vecs = torch.linalg.eigh(n)
+    quat = vecs[..., -1]  # [B, 4] (w, x, y, z), unit norm
+    qw, qx, qy, qz = quat.unbind(-1)
+    r = torch.stack([
+        torch.stack([qw * qw + qx * qx - qy * qy - qz * qz, 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)], -1),
+        torch.stack([2 * (qx * qy + qw * qz), qw * qw - qx * qx + qy * qy - qz * qz, 2 * (qy * qz - qw * qx)], -1),
+        torch.stack([2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), qw * qw - qx * qx - qy * qy + qz * qz], -1),
+    ], -2)
+    t = qc - (r @ pc.unsqueeze(-1)).squeeze(-1)
+    b = p.shape[0]
+    out = torch.zeros(b, 4, 4, dtype=torch.float64, device=p.device)
+    out[:, :3, :3] = r
+    out[:, :3, 3] = t
+    out[:, 3, 3] = 1.0
+    return out
+
+
+class _MatchLevel(nn.Module):
+    """One level: feature projection, cost volume, soft-argmax match, per-cell weight.
+
+    ``radius=None``: global matching (every fixed cell against every moving cell; for the coarse level, whose cells
+    are few); otherwise the local cost volume within ``+-radius`` cells.
+    """
+
+    def __init__(self, in_channels: int, feat_channels: int, radius: int | None, temperature: float) -> None:
+        super().__init__()
+        self.radius = None if radius is None else int(radius)
+        self.project = nn.Conv3d(in_channels, feat_channels, kernel_size=1)
+        self.weight_head = nn.Sequential(nn.Conv3d(in_channels, 16, kernel_size=1), nn.PReLU(),
+                                         nn.Conv3d(16, 1, kernel_size=1))
+        nn.init.zeros_(self.weight_head[-1].weight)
+        nn.init.zeros_(self.weight_head[-1].bias)
+        self.log_temperature = nn.Parameter(torch.tensor(float(temperature)).log())
+        if self.radius is not None:
+            k = 2 * self.radius + 1
+            r = torch.arange(-self.radius, self.radius + 1, dtype=torch.float32)
+            shifts = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(k**3, 3)  # (dx, dy, dz)
+            self.register_buffer("shifts", shifts, persistent=False)
+
+    def forward(self, feat_moving: torch.Tensor, feat_fixed: torch.Tensor, cells: torch.Tensor,
+                step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``[B, C, X, Y, Z]`` x 2, cell positions ``[N, 3]`` (mm) and cell size ``[3]`` (mm) -> the matched moving
+        position of every fixed cell ``[B, N, 3]`` (mm, float64) and its weight ``[B, N]`` (N = X*Y*Z)."""
+        pm, pf = self.project(feat_moving), self.project(feat_fixed)
+        scale = self.log_temperature.exp()
+        if self.radius is None:
+            fm = F.normalize(pm.flatten(2), dim=1)
+            ff = F.normalize(pf.flatten(2), dim=1)
+            prob = torch.softmax(torch.bmm(ff.transpose(1, 2), fm) * scale, dim=-1)  # [B, N fixed, N moving]
+            matched = prob.to(torch.float64) @ cells
+        else:
+            cost = local_cost_volume(pm, pf, self.radius)
+            prob = torch.softmax(cost * scale, dim=1).flatten(2).transpose(1, 2)  # [B, N, K^3]
+            matched = cells + (prob.to(torch.float64) @ self.shifts.to(torch.float64)) * step
+        peak = prob.max(dim=-1).values  # sharpness of the match, in [1 / candidates, 1]
+        learned = torch.sigmoid(self.weight_head(feat_fixed)).flatten(1)  # 0.5 at initialisation
+        return matched, learned * peak
+
+
+class CorrelationRigidNet(nn.Module):
+    """Shared encoder + coarse-to-fine local correlation + weighted closed-form rigid fit (see the module doc).
+
+    Args:
+        grid_size: network grid in voxels (each axis divisible by ``2 ** len(channels)``).
+        grid_spacing: network grid spacing in mm (the cell positions of the rigid fit).
+        in_channels: channels of each of the two volumes.
+        channels: encoder stage widths; stages halve the resolution; the last two stages feed the fine (1/4) and
+            the coarse (1/8) level for three stages.
+        num_res_units: convolutions per residual stage.
+        norm: MONAI norm type (instance norm copes with CBCT/CT intensity differences).
+        feat_channels: channels of the matching features of (coarse, fine) levels.
+        radius: search radius of the fine level in cells (8 mm cells at 2 mm: +-16 mm); the coarse level matches
+            every cell against every cell (global search, the whole grid).
+        temperature: initial softmax temperature on the cosine similarities.
+        fine_passes: fine-level corrections after the coarse estimate (each re-warps the moving volume).
+
+    Shapes:
+        ``forward``: ``[B, 2 * C, x, y, z]`` (moving channels, then fixed) -> ``[B, 6]``.
+        ``forward_pair``: ``moving, fixed`` ``[B, C, x, y, z]`` -> ``[B, 6]``.
+        ``forward_levels``: the same -> list of ``[B, 6]``, the estimate after each level (last = output).
+    """
+
+    def __init__(
+        self,
+        grid_size: Sequence[int] = (64, 64, 64),
+        grid_spacing: Sequence[float] = (2.0, 2.0, 2.0),
+        in_channels: int = 1,
+        channels: Sequence[int] = (16, 32, 32),
+        num_res_units: int = 2,
+        norm: str | tuple = "INSTANCE",
+        feat_channels: Sequence[int] = (32, 16),
+        radius: int = 2,
+        temperature: float = 30.0,
+        fine_passes: int = 1,
+    ) -> None:
+        super().__init__()
+        if len(channels) < 3:
+            raise ValueError(f"channels needs at least 3 stages (1/8 resolution), got {channels}")
+        self.in_channels = int(in_channels)
+        self.grid_size = tuple(int(s) for s in grid_size)
+        self.grid_spacing = tuple(float(s) for s in grid_spacing)
+        factor = 2 ** len(channels)
+        if any(s % factor for s in self.grid_size):
+            raise ValueError(f"grid_size {self.grid_size} must be divisible by {factor}")
+        self.fine_passes = int(fine_passes)
+        stages: list[nn.Module] = []
+        c_in = self.in_channels
+        for c in channels:
+            stages.append(ResidualUnit(spatial_dims=3, in_channels=c_in, out_channels=int(c), strides=2,
+                                       kernel_size=3, subunits=num_res_units, act="PRELU", norm=norm))
+            c_in = int(c)
+        self.stages = nn.ModuleList(stages)
+        self.coarse = _MatchLevel(int(channels[-1]), int(feat_channels[0]), None, temperature)
+        self.fine = _MatchLevel(int(channels[-2]), int(feat_channels[1]), int(radius), temperature)
+        self.grid = Grid.centered(self.grid_size, self.grid_spacing)
+        n = len(channels)
+        self.register_buffer("cells_coarse", self._cell_centres(2**n), persistent=False)
+        self.register_buffer("cells_fine", self._cell_centres(2 ** (n - 1)), persistent=False)
+
+    def _cell_centres(self, stride: int) -> torch.Tensor:
+        """``[N, 3]`` mm positions (about the grid centre) of the cells of a stride-``stride`` feature map.
+
+        A chain of stride-2, kernel-3, padding-1 convolutions centres output cell ``n`` on input voxel
+        ``stride * n``."""
+        axes = []
+        for size, sp in zip(self.grid_size, self.grid_spacing):
+            idx = torch.arange(size // stride, dtype=torch.float64) * stride
+            axes.append((idx - (size - 1) / 2.0) * sp)
+        return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+    def _encode(self, x: torch.Tensor) -> list[torch.Tensor]:
+        feats = []
+        for stage in self.stages:
+            x = stage(x)
+            feats.append(x)
+        return feats
+
+    def _fit(self, level: _MatchLevel, cells: torch.Tensor, fm: torch.Tensor, ff: torch.Tensor,
+             stride: int) -> torch.Tensor:
+        step = torch.tensor([stride * s for s in self.grid_spacing], dtype=torch.float64, device=fm.device)
+        cells = cells.to(fm.device)
+        matched, weight = level(fm, ff, cells, step)
+        return weighted_rigid_fit(cells.unsqueeze(0).expand(fm.shape[0], -1, -1), matched, weight)
+
+    def forward_levels(self, moving: torch.Tensor, fixed: torch.Tensor) -> list[torch.Tensor]:
+        """Estimates ``[B, 6]`` after the coarse level and after each fine pass (mm / degrees, grid centre)."""
+        if moving.shape != fixed.shape:
+            raise ValueError(f"moving {moving.shape} and fixed {fixed.shape} must have the same shape")
+        if tuple(moving.shape[2:]) != self.grid_size:
+            raise ValueError(f"inputs {tuple(moving.shape[2:])} are not on the network grid {self.grid_size}")
+        b = moving.shape[0]
+        n = len(self.stages)
+        feats = self._encode(torch.cat([moving, fixed], 0))
+        ff_fine, ff_coarse = feats[n - 2][b:], feats[n - 1][b:]
+        total = self._fit(self.coarse, self.cells_coarse, feats[n - 1][:b], ff_coarse, 2**n)
+        levels = [matrix_to_params_torch(total).to(moving.dtype)]
+        for _ in range(self.fine_passes):
+            warped = warp_volume(moving, total, self.grid, self.grid)
+            fm_fine = self._encode_until(warped, n - 1)
+            correction = self._fit(self.fine, self.cells_fine, fm_fine, ff_fine, 2 ** (n - 1))
+            total = total @ correction
+            levels.append(matrix_to_params_torch(total).to(moving.dtype))
+        return levels
+
+    def _encode_until(self, x: torch.Tensor, stages: int) -> torch.Tensor:
+        for stage in self.stages[:stages]:
+            x = stage(x)
+        return x
+
+    def forward_pair(self, moving: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
+        """Rigid parameters ``[B, 6]`` (mm, degrees; fixed -> moving about the grid centre)."""
+        return self.forward_levels(moving, fixed)[-1]
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        """``[B, 2 * C, x, y, z]`` (moving, then fixed) -> ``[B, 6]``."""
+        if image.shape[1] != 2 * self.in_channels:
+            raise ValueError(f"expected {2 * self.in_channels} channels (moving, fixed), got {image.shape[1]}")
+        return self.forward_pair(image[:, : self.in_channels], image[:, self.in_channels :])
