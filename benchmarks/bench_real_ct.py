@@ -229,6 +229,8 @@ def main() -> int:
     ap.add_argument("--device", default="cpu", help="device of the network (default cpu)")
     ap.add_argument("--bundle", type=Path, default=None,
                     help="bundle directory of the network methods (default: the shipped bundle)")
+    ap.add_argument("--fine-passes", type=int, default=None,
+                    help="fine passes of a CorrelationRigidNet at inference (default: the bundle's)")
     ap.add_argument("--results", type=Path, default=None, help="also write the printed text to FILE")
     args = ap.parse_args()
     if args.num_cases < 1 or args.threads < 1:
@@ -269,7 +271,8 @@ def main() -> int:
         f"date: {started.isoformat(timespec='seconds')}",
         f"machine: {platform.node()} {platform.machine()}, {os.cpu_count()} CPU cores; threads {args.threads}; "
         f"torch {torch.__version__}, SimpleITK {sitk.Version.VersionString()}; device {args.device}",
-        f"bundle: {args.bundle or 'the shipped bundle'}",
+        f"bundle: {args.bundle or 'the shipped bundle'}"
+        + (f"; fine passes {args.fine_passes}" if args.fine_passes is not None else ""),
         f"load average at start (1/5/15 min): {' '.join(f'{v:.2f}' for v in os.getloadavg())}",
     ]
     for line in head:
@@ -284,6 +287,11 @@ def main() -> int:
         return 2
     registrar = (RigidRegistrar.from_bundle(args.bundle, device=args.device)
                  if any(m.startswith("network") for m in methods) else None)
+    if registrar is not None and args.fine_passes is not None:
+        regression = getattr(registrar.network, "regression", None)
+        if not hasattr(regression, "fine_passes"):
+            ap.error("--fine-passes needs a bundle whose regression is a CorrelationRigidNet")
+        regression.fine_passes = int(args.fine_passes)
     all_rows: list[dict] = []
     per_ct: list[tuple[str, list[dict]]] = []
     timing: list[str] = []

@@ -59,8 +59,9 @@ class TwoStageRigidNet(nn.Module):
         raise RuntimeError(
             "TwoStageRigidNet cannot be scripted: its Gauss-Newton fine stage builds grids with numpy and caches them. "
             "Export it by tracing at the network grid size, e.g. python -m monai.bundle ckpt_export network_def "
-            "--use_trace True --input_shape '[1, 2, 64, 64, 64]' ..., or script the regression alone "
-            "(torch.jit.script(net.regression))")
+            "--use_trace True --input_shape '[1, 2, 64, 64, 64]' ... (a DualEncoderRigidNet regression also "
+            "scripts alone: torch.jit.script(net.regression); a CorrelationRigidNet, whose re-warp uses its grid, "
+            "exports by tracing only)")
 
     def forward_stages(self, moving: torch.Tensor, fixed: torch.Tensor) -> dict[str, Any]:
         """Both estimates (see :data:`STAGE_KEYS`); ``moving``, ``fixed``: ``[B, C, x, y, z]`` on the network grid."""
