@@ -105,7 +105,7 @@ def train_variant(name: str, args: argparse.Namespace, train_cfg: dict, out) -> 
             opt.zero_grad()
             loss.backward()
             opt.step()
-            losses.append(crit.last_terms.get("sup", float(loss)))
+            losses.append(crit.last_terms.get("sup", float(loss.detach())))
             step += 1
             if step % 50 == 0:
                 out(f"  {name}: step {step}/{args.iterations}, supervised term (last 50) "

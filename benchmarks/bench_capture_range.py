@@ -35,11 +35,20 @@ from monai_rigidreg.engine.metrics import RigidErrorMetric  # noqa: E402
 
 def load_network(bundle: Path, weights: str | None, zero_head: bool) -> torch.nn.Module:
     net, _ = load_bundle_network(bundle, weights=weights)
-    if zero_head:
-        with torch.no_grad():
-            net.regression.head.weight.zero_()
-            net.regression.head.bias.zero_()
+    if zero_head:  # the learned estimate replaced by the identity: what the fine stage reaches on its own
+        net.regression = _Identity(net.regression)
     return net
+
+
+class _Identity(torch.nn.Module):
+    """A stand-in regression that always estimates no motion (``[B, 6]`` zeros)."""
+
+    def __init__(self, regression: torch.nn.Module) -> None:
+        super().__init__()
+        self.in_channels = regression.in_channels
+
+    def forward_pair(self, moving: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
+        return moving.new_zeros(moving.shape[0], 6)
 
 
 def main() -> None:
