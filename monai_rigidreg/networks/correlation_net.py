@@ -228,16 +228,16 @@ class CorrelationRigidNet(nn.Module):
         """``[N, 3]`` mm positions (about the grid centre) of the cells of a stride-``stride`` feature map.
 
         A chain of stride-2, kernel-3, padding-1 convolutions centres output cell ``n`` on input voxel
-        ``stride * n``."""
-        axes = []
-        for size, sp in zip(self.grid_size, self.grid_spacing):
-            idx = torch.arange(size // stride, dtype=torch.float64) * stride
-            axes.append((idx - (size - 1) / 2.0) * sp)
-        return torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        ``stride * n``; the voxel's position comes from the grid (:meth:`Grid.index_to_physical`)."""
+        axes = [torch.arange(size // stride, dtype=torch.float64) * stride for size in self.grid_size]
+        index = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        to_mm = torch.as_tensor(self.grid.index_to_physical(), dtype=torch.float64)
+        return index @ to_mm[:3, :3].T + to_mm[:3, 3]
 
-    def _encode(self, x: torch.Tensor) -> list[torch.Tensor]:
+    def _encode(self, x: torch.Tensor, stages: int | None = None) -> list[torch.Tensor]:
+        """The outputs of the first ``stages`` encoder stages (all by default)."""
         feats = []
-        for stage in self.stages:
+        for stage in self.stages[:stages]:
             x = stage(x)
             feats.append(x)
         return feats
@@ -245,7 +245,6 @@ class CorrelationRigidNet(nn.Module):
     def _fit(self, level: _MatchLevel, cells: torch.Tensor, fm: torch.Tensor, ff: torch.Tensor,
              stride: int) -> torch.Tensor:
         step = torch.tensor([stride * s for s in self.grid_spacing], dtype=torch.float64, device=fm.device)
-        cells = cells.to(fm.device)
         matched, weight = level(fm, ff, cells, step)
         return weighted_rigid_fit(cells.unsqueeze(0).expand(fm.shape[0], -1, -1), matched, weight)
 
@@ -263,16 +262,11 @@ class CorrelationRigidNet(nn.Module):
         levels = [matrix_to_params_torch(total).to(moving.dtype)]
         for _ in range(self.fine_passes):
             warped = warp_volume(moving, total, self.grid, self.grid)
-            fm_fine = self._encode_until(warped, n - 1)
+            fm_fine = self._encode(warped, n - 1)[-1]
             correction = self._fit(self.fine, self.cells_fine, fm_fine, ff_fine, 2 ** (n - 1))
             total = total @ correction
             levels.append(matrix_to_params_torch(total).to(moving.dtype))
         return levels
-
-    def _encode_until(self, x: torch.Tensor, stages: int) -> torch.Tensor:
-        for stage in self.stages[:stages]:
-            x = stage(x)
-        return x
 
     def forward_pair(self, moving: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
         """Rigid parameters ``[B, 6]`` (mm, degrees; fixed -> moving about the grid centre)."""

@@ -51,14 +51,11 @@ class RandIsocenterCropd(RandomizableTransform, MapTransform):
         self.size = np.asarray(ensure_tuple_rep(size, 3), dtype=int)
         if max_offset < 0:
             raise ValueError(f"max_offset must be >= 0 mm, got {max_offset}")
-        self.max_offset_vox = np.floor(float(max_offset) / np.asarray(ensure_tuple_rep(spacing, 3), float)).astype(int)
         self.spacing = np.asarray(ensure_tuple_rep(spacing, 3), dtype=float)
+        self.max_offset_vox = np.floor(float(max_offset) / self.spacing).astype(int)
         self.body_threshold = float(body_threshold)
         self.tries = int(tries)
         self.last_offset_mm = np.zeros(3)
-
-    def randomize(self, data: Any = None) -> None:
-        super().randomize(None)
 
     def _offset(self, img: torch.Tensor) -> np.ndarray:
         shape = np.asarray(img.shape[1:], dtype=int)
@@ -79,7 +76,7 @@ class RandIsocenterCropd(RandomizableTransform, MapTransform):
 
     def __call__(self, data: Mapping[Hashable, Any]) -> dict[Hashable, Any]:
         d = dict(data)
-        self.randomize()
+        self.randomize(None)
         first = next(iter(self.key_iterator(d)), None)
         if first is None:
             return d
