@@ -32,6 +32,7 @@ from monai_rigidreg.io import (
     save_volume,
     write_transform,
 )
+from monai_rigidreg.match_region import MATCH_MODES, parse_roi
 from monai_rigidreg.provenance import registration_provenance
 from monai_rigidreg.qc import qc_figure
 from monai_rigidreg.registration import RegistrationResult, RigidRegistrar, _check_steps
@@ -138,6 +139,9 @@ def register_files(
     transform_format: str = "tfm",
     fine_stage: bool | None = None,
     patient_position: str | None = None,
+    global_init: bool | None = None,
+    roi: Any = None,
+    match: str = "soft",
 ) -> dict[str, Path]:
     """Load both volumes, register them and write the standard outputs.
 
@@ -158,6 +162,8 @@ def register_files(
         reg: ``registration.dcm``: one of :data:`REG_MODES`.
         transform_format: ``"tfm"`` or ``"h5"`` (the ITK transform file).
         fine_stage: ``False``: the learned regression alone (see :func:`~monai_rigidreg.registration.register`).
+        global_init, roi, match: the global search, the region of interest and the match mode, as for
+            :func:`~monai_rigidreg.registration.register` (the ROI is read and checked before registering).
         patient_position: DICOM Patient Position of the CT (``HFS``, ``FFS``, ...) for the couch axes; default the
             CT's DICOM header, else head-first supine (assumed, with a warning). A value given here that the couch
             shifts do not support is refused before registering; one read from the header gives a warning and no
@@ -168,6 +174,9 @@ def register_files(
     """
     check_register_inputs(fixed, moving, output_dir, overwrite, cascade_steps)
     check_distinct_inputs(fixed, moving, fixed_series_uid, moving_series_uid)
+    roi = parse_roi(roi)
+    if match not in MATCH_MODES:
+        raise InputError(f"match must be one of {MATCH_MODES}, got {match!r}")
     if transform_format not in TRANSFORM_FORMATS:
         raise InputError(f"--transform-format must be one of {TRANSFORM_FORMATS}, got {transform_format!r}")
     iso = None if isocenter is None else _point(isocenter, "isocenter")
@@ -178,7 +187,8 @@ def register_files(
     position, position_source, position_problem = _patient_position(provenance["inputs"]["fixed"], patient_position)
     fixed_img = load_volume(fixed, series_uid=fixed_series_uid)
     moving_img = load_volume(moving, series_uid=moving_series_uid)
-    result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps, fine_stage=fine_stage)
+    result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps, fine_stage=fine_stage,
+                       global_init=global_init, roi=roi, match=match)
     result.provenance = provenance
     if reg_warning:
         logger.warning("%s", reg_warning)

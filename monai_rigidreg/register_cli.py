@@ -47,6 +47,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--no-fine-stage", action="store_true",
                    help="the learned network alone: the regression's estimate without the Gauss-Newton stage (to "
                    "measure it; with --refine the optimizer still runs)")
+    p.add_argument("--no-global-init", action="store_true",
+                   help="skip the global search for large offsets (on by default: translations over +-80 mm for "
+                   "seven rotation candidates; the network also starts from its best candidate where the two disagree)")
+    p.add_argument("--roi", default=None, metavar="X0,Y0,Z0,X1,Y1,Z1|MASK",
+                   help="match only this region of the CT (clip box): a box in CT LPS mm, or a mask image on the CT's "
+                   "physical space (non-zero inside)")
+    p.add_argument("--match", choices=("soft", "bone"), default="soft",
+                   help="soft: all tissue (default); bone: the CT's bone and a few mm around it")
     p.add_argument("--transform-format", choices=("tfm", "h5"), default="tfm",
                    help="ITK transform file: transform.tfm (text) or transform.h5 (HDF5)")
     p.add_argument("--fail-on-flag", action="store_true",
@@ -69,12 +77,14 @@ def run(args: argparse.Namespace) -> int:
 
     # inputs, options and the output folder before the network is loaded (register_files checks them again, cheaply)
     check_register_inputs(args.fixed, args.moving, args.output_dir, args.overwrite, args.cascade_steps)
+    _match_options(args)
     registrar = RigidRegistrar.from_bundle(args.bundle, device=args.device)
     paths = register_files(registrar, args.fixed, args.moving, args.output_dir, refine=args.refine,
                            overwrite=args.overwrite, qc=not args.no_qc, cascade_steps=args.cascade_steps,
                            fixed_series_uid=args.fixed_series_uid, moving_series_uid=args.moving_series_uid,
                            isocenter=args.isocenter, reg=args.reg, transform_format=args.transform_format,
-                           fine_stage=False if args.no_fine_stage else None, patient_position=args.patient_position)
+                           fine_stage=False if args.no_fine_stage else None, patient_position=args.patient_position,
+                           **_match_options(args))
     summary = json.loads(paths["result.json"].read_text())
     couch = summary.get("couch_shift", {})
     print(json.dumps({"params": summary["params"], "confidence": round(summary["confidence"], 3),
@@ -86,6 +96,13 @@ def run(args: argparse.Namespace) -> int:
     for name, p in paths.items():
         print(f"  {name:18s} {p}")
     return 3 if args.fail_on_flag and summary["flagged"] else 0  # 3: cli.EXIT_FLAGGED
+
+
+def _match_options(args: argparse.Namespace) -> dict[str, Any]:
+    """``global_init``, ``roi`` (checked: a bad box or mask ends the run before the network is loaded) and ``match``."""
+    from monai_rigidreg.match_region import parse_roi
+
+    return {"global_init": False if args.no_global_init else None, "roi": parse_roi(args.roi), "match": args.match}
 
 
 def _run_batch(args: argparse.Namespace, registrar_cls: Any, evaluator_cls: Any, pairs_fn: Any) -> int:
@@ -101,7 +118,7 @@ def _run_batch(args: argparse.Namespace, registrar_cls: Any, evaluator_cls: Any,
     evaluator = evaluator_cls(registrar, pairs, args.output_dir, refine=args.refine, overwrite=args.overwrite,
                               qc=not args.no_qc, fine_stage=False if args.no_fine_stage else None,
                               isocenter=args.isocenter, reg=args.reg, transform_format=args.transform_format,
-                              patient_position=args.patient_position)
+                              patient_position=args.patient_position, **_match_options(args))
     summary = evaluator.run()  # BatchFailures (exit status 2) names the pairs that failed
     print(json.dumps(summary, indent=2))
     return 0

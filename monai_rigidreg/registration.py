@@ -33,6 +33,7 @@ from monai_rigidreg.confidence import (
     LOCAL_GAIN_LIMIT,
     assess_estimate,
     cylindrical_fov_mask,
+    fov_ncc,
 )
 from monai_rigidreg.device import resolve_device
 from monai_rigidreg.errors import InputError
@@ -42,12 +43,16 @@ from monai_rigidreg.geometry import (
     Grid,
     grid_points,
     invert_matrix,
+    matrix_to_params,
     params_to_matrix,
     params_to_sitk,
     recenter_params,
     target_registration_error,
+    transform_points,
 )
+from monai_rigidreg.global_init import global_search, matrix_distance_mm
 from monai_rigidreg.io import as_image, check_distinct_inputs, grids_overlap, resample
+from monai_rigidreg.match_region import RoiLike, match_weight, parse_roi
 from monai_rigidreg.network_grid import NetworkGridSpec
 from monai_rigidreg.networks import cascade_register
 from monai_rigidreg.provenance import bundle_record
@@ -152,6 +157,10 @@ class RigidRegistrar:
         hu_range: HU window mapped to [0, 1] before the network (as in training).
         inferer: optional MONAI ``Inferer`` (``inferer(inputs [B, 2, x, y, z], network) -> [B, 6]``) through which
             every network application runs (the bundle's ``inferer``: ``SimpleInferer``); ``None`` calls the network.
+        global_init: run the global search for large offsets by default (:mod:`monai_rigidreg.global_init`: the
+            network also starts from its best candidate when the two disagree); a call's ``global_init`` overrides.
+        search_settings: keyword arguments of :func:`~monai_rigidreg.global_init.global_search` (``spacing_mm``,
+            ``max_translation_mm``, ``rotations_deg``, ...).
 
     Build it once and reuse it: ``registrar = RigidRegistrar.from_bundle()`` then
     ``monai_rigidreg.register(ct, cbct, model=registrar)`` (or ``registrar(ct, cbct)``).
@@ -166,6 +175,8 @@ class RigidRegistrar:
         device: str | torch.device | None = "auto",
         hu_range: tuple[float, float] = (-1000.0, 2000.0),
         inferer: Callable[[torch.Tensor, nn.Module], torch.Tensor] | None = None,
+        global_init: bool = True,
+        search_settings: dict[str, Any] | None = None,
     ) -> None:
         if network_size is None or network_spacing is None:
             shipped = NetworkGridSpec.from_bundle()
@@ -188,6 +199,8 @@ class RigidRegistrar:
         self.cascade_steps = _check_steps(cascade_steps)
         self.hu_range = hu_range
         self.inferer = inferer
+        self.global_init = bool(global_init)
+        self.search_settings = dict(search_settings or {})
         # one registration at a time per registrar: fine_stage_switch changes the shared network's setting
         self._lock = threading.RLock()
         self.source: dict[str, Any] = {}  # the bundle and weights it came from (from_bundle), for the audit trail
@@ -230,14 +243,15 @@ class RigidRegistrar:
         """
         return self.grid_spec.on_moving(moving) if moving is not None else self.grid_spec.on_fixed(fixed)
 
-    def preprocess(self, image: sitk.Image, grid: Grid) -> torch.Tensor:
+    def preprocess(self, image: sitk.Image, grid: Grid, matrix: np.ndarray | None = None) -> torch.Tensor:
         """``[1, x, y, z]`` normalized plain tensor of ``image`` on the network grid (the training preprocessing:
-        :class:`~monai_rigidreg.transforms.ResampleToNetworkGrid` then :class:`~monai_rigidreg.transforms.NormalizeHU`).
-        """
-        out = self._normalize(self._on_grid(image, grid, "bilinear", self.hu_range[0]))
+        :class:`~monai_rigidreg.transforms.ResampleToNetworkGrid` then :class:`~monai_rigidreg.transforms.NormalizeHU`);
+        ``matrix``: sample ``image`` through this 4x4 grid -> image transform (LPS mm; a start estimate)."""
+        out = self._normalize(self._on_grid(image, grid, "bilinear", self.hu_range[0], matrix))
         return (out.as_tensor() if isinstance(out, MetaTensor) else out).float()
 
-    def _on_grid(self, image: sitk.Image, grid: Grid, mode: str, padding_value: float) -> torch.Tensor:
+    def _on_grid(self, image: sitk.Image, grid: Grid, mode: str, padding_value: float,
+                 matrix: np.ndarray | None = None) -> torch.Tensor:
         """``[1, x, y, z]`` float32 plain tensor of ``image`` resampled onto ``grid`` (no normalization).
 
         The ``[z, y, x]`` array is viewed as ``[x, y, z]`` without a copy, so for a CT much larger than the grid only
@@ -249,17 +263,22 @@ class RigidRegistrar:
             image = sitk.Cast(image, sitk.sitkFloat32)
         raw = torch.from_numpy(sitk.GetArrayFromImage(image)).permute(2, 1, 0)[None]
         return resample_to_grid(raw, Grid.from_sitk(image), grid, mode, "zeros", padding_value,
-                                antialias=self._resampler.antialias)
+                                antialias=self._resampler.antialias and mode == "bilinear", matrix=matrix)
 
     @torch.no_grad()
-    def estimate(self, moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, steps: int | None = None
-                 ) -> np.ndarray:
+    def estimate(self, moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, steps: int | None = None,
+                 fixed_weight: torch.Tensor | None = None) -> np.ndarray:
         """Network (+ cascade) estimate ``[6]`` (numpy, mm/deg about the grid centre) from preprocessed
-        ``[1, x, y, z]`` tensors on ``grid``."""
+        ``[1, x, y, z]`` tensors on ``grid``; ``fixed_weight``: optional ``[1, x, y, z]`` match-region weights
+        on the grid (passed to the network as ``fixed_weight``)."""
         k = self.cascade_steps if steps is None else _check_steps(steps)
         m = moving_t[None].to(self.device)
         f = fixed_t[None].to(self.device)
-        net = self.network if self.inferer is None else functools.partial(self.inferer, network=self.network)
+        kwargs = {} if fixed_weight is None else {"fixed_weight": fixed_weight[None].to(self.device)}
+        if self.inferer is None:
+            net = functools.partial(self.network, **kwargs) if kwargs else self.network
+        else:
+            net = functools.partial(self.inferer, network=self.network, **kwargs)
         params = cascade_register(net, m, f, grid, steps=k)
         return params[0].double().cpu().numpy()
 
@@ -283,16 +302,42 @@ class RigidRegistrar:
         moving_fov: sitk.Image | None = None,
         assess: bool = True,
         fine_stage: bool | None = None,
+        global_init: bool | None = None,
+        roi: RoiLike = None,
+        match: str = "soft",
     ) -> RegistrationResult:
         """Register ``moving`` (CBCT) to ``fixed`` (CT); see :func:`register` (``fine_stage=False``: the learned
-        regression alone, also in the confidence check's swapped-input estimate; ``None``: as the network is
-        configured, e.g. by the bundle's ``fine_stage``)."""
+        regression alone, also in the confidence check's swapped-input estimate, and no global search; ``None``:
+        as the network is configured, e.g. by the bundle's ``fine_stage``)."""
         with self._lock, fine_stage_switch(self.network, fine_stage):
-            result = self._register(fixed, moving, refine, cascade_steps, resample_moving, moving_fov, assess)
+            if global_init is None:
+                global_init = self.global_init and fine_stage is not False
+            result = self._register(fixed, moving, refine, cascade_steps, resample_moving, moving_fov, assess,
+                                    bool(global_init), roi, match)
             used = getattr(self.network, "fine_stage", None) is not None and getattr(
                 self.network, "fine_stage_enabled", True)
         result.details["fine_stage"] = bool(used)
         return result
+
+    def _run_from(self, fixed_img: sitk.Image, moving_img: sitk.Image, start: np.ndarray, steps: int | None,
+                  weight_img: sitk.Image | None, timings: dict[str, float]) -> _Run:
+        """The network from a start (4x4 fixed -> moving, LPS mm): the grid is centred on the CT point the start
+        maps to the CBCT centre, the CBCT is sampled through the start (one interpolation), the network estimates
+        the residual and the total is ``start o residual``. Adds to ``timings["preprocess"]`` and ``["network"]``."""
+        t = time.perf_counter()
+        c_moving = Grid.from_sitk(moving_img).center()
+        identity = np.allclose(start, np.eye(4))
+        center = c_moving if identity else transform_points(invert_matrix(start), c_moving[None])[0]
+        grid = self.grid_spec.centered(center)
+        fixed_t = self.preprocess(fixed_img, grid)
+        moving_t = self.preprocess(moving_img, grid, None if identity else start)
+        weight_t = None if weight_img is None else self._on_grid(weight_img, grid, "bilinear", 0.0)
+        timings["preprocess"] = timings.get("preprocess", 0.0) + time.perf_counter() - t
+        t = time.perf_counter()
+        residual = self.estimate(moving_t, fixed_t, grid, steps, weight_t)
+        timings["network"] = timings.get("network", 0.0) + time.perf_counter() - t
+        total = start @ params_to_matrix(residual, grid.center())
+        return _Run(grid, fixed_t, moving_t, weight_t, start, residual, total)
 
     def _register(
         self,
@@ -303,6 +348,9 @@ class RigidRegistrar:
         resample_moving: bool,
         moving_fov: sitk.Image | None,
         assess: bool,
+        global_init: bool,
+        roi: RoiLike,
+        match: str,
     ) -> RegistrationResult:
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
@@ -316,50 +364,71 @@ class RigidRegistrar:
                 "the CT (fixed) and CBCT (moving) do not overlap in physical space: check that both are in the "
                 "same patient coordinate system (origins and directions)"
             )
-        # the CBCT field of view is only needed by the refinement and the confidence signals
+        weight_img = match_weight(fixed_img, roi, match)
+        # the CBCT field of view: for the refinement, the confidence signals and the global search
         fov_img = None
-        if refine or assess:
+        if refine or assess or global_init:
             fov_img = cylindrical_fov_mask(moving_img) if moving_fov is None else moving_fov
 
-        t = time.perf_counter()
-        grid = self.network_grid(fixed_img, moving_img)
-        fixed_t = self.preprocess(fixed_img, grid)
-        moving_t = self.preprocess(moving_img, grid)
-        timings["preprocess"] = time.perf_counter() - t
-
-        t = time.perf_counter()
-        net_params = self.estimate(moving_t, fixed_t, grid, cascade_steps)
-        timings["network"] = time.perf_counter() - t
-        grid_center = grid.center()  # params and net_params are about it until re-expressed at the end
-        params = net_params.copy()
-        # network_params and the refinement's change are filled in at the end, about the fixed image centre
+        run = self._run_from(fixed_img, moving_img, np.eye(4), cascade_steps, weight_img, timings)
         details: dict[str, Any] = {"network_params": {},
                                    "cascade_steps": self.cascade_steps if cascade_steps is None else cascade_steps,
-                                   "device": str(self.device)}
+                                   "device": str(self.device), "start": "identity"}
+        if roi is not None or match != "soft":
+            details["match_region"] = {"roi": _jsonable(roi) if not isinstance(parse_roi(roi), sitk.Image)
+                                       else "mask", "match": match}
         if warnings:
             details["warnings"] = warnings
+        if global_init:
+            t = time.perf_counter()
+            candidates = global_search(fixed_img, moving_img, fov_img, hu_range=self.hu_range,
+                                       **self.search_settings)
+            best = candidates[0]
+            agree = matrix_distance_mm(best.matrix, run.total, grid_points(run.grid, 8))
+            search = {"best": best.to_dict(), "distance_to_identity_start_mm": round(agree, 2),
+                      "candidates": [c.to_dict() for c in candidates]}
+            timings["global_search"] = time.perf_counter() - t
+            if agree > SEARCH_AGREE_MM:
+                # the estimate from the identity and the search disagree: the network also starts from the search's
+                # best candidate, and the estimate whose CBCT field of view matches the CT better goes on
+                t = time.perf_counter()
+                alt = self._run_from(fixed_img, moving_img, best.matrix, cascade_steps, weight_img, timings)
+                ref_grid = self.grid_spec.pooled(2).centered(Grid.from_sitk(moving_img).center())
+                s0 = _fov_similarity(fixed_img, moving_img, fov_img, run.total, ref_grid, self.hu_range)
+                s1 = _fov_similarity(fixed_img, moving_img, fov_img, alt.total, ref_grid, self.hu_range)
+                search.update(identity_start_ncc=round(s0, 4), search_start_ncc=round(s1, 4))
+                if s1 > s0:
+                    run = alt
+                    details["start"] = "search"
+                timings["second_start"] = time.perf_counter() - t
+            details["global_search"] = search
+        grid = run.grid
+        grid_center = grid.center()  # params are about it until re-expressed at the end
+        net_params = matrix_to_params(run.total, grid_center)
+        params = net_params.copy()
 
         fov_t = None
         if refine or assess:
-            fov_t = self._on_grid(fov_img, grid, "nearest", 0.0)[0]
+            start = None if np.allclose(run.start, np.eye(4)) else run.start
+            fov_t = self._on_grid(fov_img, grid, "nearest", 0.0, start)[0]
         if refine:
             def refine_from(start_params: np.ndarray) -> Any:
                 return register_sitk(fixed_img, moving_img, initial_params=start_params, center=grid_center,
                                      moving_mask=fov_img, shrink_factors=(2, 1), smoothing_sigmas_mm=(1.0, 0.0))
 
             t = time.perf_counter()
-            res, start = refine_from(net_params), "network"
+            res, start_name = refine_from(net_params), "network"
             # safeguard: a network estimate that looks wrong can drag the optimizer into a wrong basin; then the
             # optimizer also starts from the identity and the lower (better) Mattes MI value wins
-            pre = self.assess(moving_t, fixed_t, grid, net_params, fov_t, swap=False)
+            pre = self.assess(run.moving_t, run.fixed_t, grid, run.residual, fov_t, swap=False)
             if pre["local_gain"] > LOCAL_GAIN_LIMIT:
-                alt = refine_from(np.zeros(6))
-                if alt.metric < res.metric:
-                    res, start = alt, "identity"
+                alt_res = refine_from(np.zeros(6))
+                if alt_res.metric < res.metric:
+                    res, start_name = alt_res, "identity"
             params = res.params
             timings["refine"] = time.perf_counter() - t
             details["refine"] = {
-                "start": start,
+                "start": start_name,
                 "change": {},
                 "change_tre_mm": float(target_registration_error(params, net_params, grid_points(grid, 4),
                                                                  center=grid_center)),
@@ -370,7 +439,9 @@ class RigidRegistrar:
         confidence, flagged = float("nan"), False
         if assess:
             t = time.perf_counter()
-            signals = self.assess(moving_t, fixed_t, grid, params, fov_t)
+            # in the frame of the winning start: its resampled CBCT and the residual of the final estimate
+            residual = matrix_to_params(invert_matrix(run.start) @ params_to_matrix(params, grid_center), grid_center)
+            signals = self.assess(run.moving_t, run.fixed_t, grid, residual, fov_t)
             timings["confidence"] = time.perf_counter() - t
             confidence = signals.pop("confidence")
             flagged = confidence < CONFIDENCE_THRESHOLD
@@ -393,6 +464,53 @@ class RigidRegistrar:
             details["refine"]["change"] = {n: float(v) for n, v in zip(PARAM_NAMES, params - net_fixed)}
         timings["total"] = time.perf_counter() - t_start
         return RegistrationResult(params, fixed_center, registered, timings, confidence, flagged, details)
+
+
+@dataclass
+class _Run:
+    """One network run from a start (:meth:`RigidRegistrar._run_from`): its grid and tensors, the start and the
+    residual (mm/deg about the grid centre) and the total fixed -> moving matrix (LPS mm)."""
+
+    grid: Grid
+    fixed_t: torch.Tensor
+    moving_t: torch.Tensor
+    weight_t: torch.Tensor | None
+    start: np.ndarray
+    residual: np.ndarray
+    total: np.ndarray
+
+
+def _fov_similarity(fixed: sitk.Image, moving: sitk.Image, fov: sitk.Image, matrix: np.ndarray, grid: Grid,
+                    hu_range: tuple[float, float]) -> float:
+    """NCC of the CBCT and the CT mapped into it by ``matrix`` (fixed -> moving), over the CBCT field of view on
+    ``grid`` (a grid in the CBCT frame, so every estimate is scored on the same CBCT voxels)."""
+    def on(image: sitk.Image, m: np.ndarray | None, mode: str, pad: float) -> torch.Tensor:
+        if image.GetPixelID() != sitk.sitkFloat32:
+            image = sitk.Cast(image, sitk.sitkFloat32)
+        raw = torch.from_numpy(sitk.GetArrayFromImage(image)).permute(2, 1, 0)[None]
+        return resample_to_grid(raw, Grid.from_sitk(image), grid, mode, "zeros", pad, antialias=mode == "bilinear",
+                                matrix=m)[0]
+
+    a, b = hu_range
+    to_fixed = invert_matrix(matrix)
+    cb = on(moving, None, "bilinear", a).clamp(a, b)
+    ct = on(fixed, to_fixed, "bilinear", a).clamp(a, b)
+    # only where the CT has data: the grid points mapped into the CT's index space
+    idx = transform_points(np.linalg.inv(Grid.from_sitk(fixed).index_to_physical()) @ to_fixed,
+                           transform_points(grid.index_to_physical(), _grid_indices(grid)))
+    inside = np.all((idx >= 0) & (idx <= np.asarray(fixed.GetSize()) - 1), axis=1).reshape(grid.size)
+    mask = (on(fov, None, "nearest", 0.0) > 0) & torch.from_numpy(inside)
+    return fov_ncc(cb, ct, mask.to(torch.float32))
+
+
+def _grid_indices(grid: Grid) -> np.ndarray:
+    """``[N, 3]`` voxel indices of ``grid`` in row-major ``(x, y, z)`` order (the order of ``grid.size``)."""
+    return np.stack(np.meshgrid(*[np.arange(n, dtype=np.float64) for n in grid.size], indexing="ij"), -1).reshape(-1, 3)
+
+
+SEARCH_AGREE_MM = 10.0
+"""The network's estimate from the identity and the global search's best candidate agree when the mean distance
+between the network-grid points they map is below this: the second start is then skipped."""
 
 
 HU_AIR_LIMIT = -500.0
@@ -438,6 +556,9 @@ def register(
     resample_moving: bool = True,
     moving_fov: sitk.Image | None = None,
     fine_stage: bool | None = None,
+    global_init: bool | None = None,
+    roi: RoiLike = None,
+    match: str = "soft",
 ) -> RegistrationResult:
     """Rigidly register a CBCT (``moving``) to a planning CT (``fixed``).
 
@@ -457,6 +578,14 @@ def register(
             Gauss-Newton stage, search, multi-start or optimizer (``refine`` adds its optimizer, so keep it off for
             that). Also with ``model=`` a registrar built once. ``None`` (default): as the network is configured
             (the shipped bundle: on). ``details["fine_stage"]`` records what ran.
+        global_init: the global search for large offsets (translations over +-80 mm for seven rotation
+            candidates, :mod:`monai_rigidreg.global_init`): the network also starts from the search's best candidate
+            when it disagrees with the estimate from the identity, and the estimate whose CBCT field of view matches
+            the CT better is kept (``details["start"]`` says which: ``"identity"`` or ``"search"``). ``None``
+            (default): on, except with ``fine_stage=False`` (the learned network alone); ``False``: off.
+        roi: restrict the match to a region of the CT: a box ``(x0, y0, z0, x1, y1, z1)`` in CT LPS mm or a mask
+            image (non-zero inside) on the CT's physical space (:mod:`monai_rigidreg.match_region`).
+        match: ``"soft"`` (all tissue, default) or ``"bone"`` (the CT's bone and a few mm around it).
 
     Returns:
         :class:`RegistrationResult` with ``params`` (mm/deg, fixed -> moving, about the fixed image centre),
@@ -478,7 +607,7 @@ def register(
             _DEFAULT_REGISTRARS[key] = RigidRegistrar.from_bundle(bundle, device=device)
         registrar = _DEFAULT_REGISTRARS[key]
     return registrar(fixed, moving, refine=refine, cascade_steps=cascade_steps, resample_moving=resample_moving,
-                     moving_fov=moving_fov, fine_stage=fine_stage)
+                     moving_fov=moving_fov, fine_stage=fine_stage, global_init=global_init, roi=roi, match=match)
 
 
 @contextlib.contextmanager

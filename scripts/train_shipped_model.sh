@@ -1,21 +1,30 @@
 #!/usr/bin/env bash
 # Train the shipped bundle weights (bundles/cbct_ct_rigid/models/model.pt) on the data of make_training_data.sh.
-#   usage: scripts/train_shipped_model.sh [DATA_DIR] [RUN_DIR] [EPOCHS] [--resume]
+#   usage: [LR=1e-3] [LR_STEP=30] [INIT_WEIGHTS=PATH] [TRAIN_FINE_PASSES=1] \
+#          scripts/train_shipped_model.sh [DATA_DIR] [RUN_DIR] [EPOCHS] [--resume]
 # Resumable: run the same command with --resume (4th argument) to continue from the newest checkpoint in
 # RUN_DIR/ckpt, e.g. after the session that started it ended. CPU by default; the same command uses CUDA where
-# torch sees a GPU (the bundle's "device").
+# torch sees a GPU (the bundle's "device"). INIT_WEIGHTS starts the network from earlier weights (fine-tuning; the
+# optimizer and the learning-rate schedule start afresh, a --resume'd run continues from its checkpoint instead);
+# TRAIN_FINE_PASSES sets the learned network's fine passes during training (each intermediate estimate is
+# supervised with w_levels).
 set -euo pipefail
 DATA=${1:-data}
 RUN=${2:-runs/shipped}
 EPOCHS=${3:-80}
 RESUME=${4:-}
+LR=${LR:-1e-3}
+LR_STEP=${LR_STEP:-30}
+TRAIN_FINE_PASSES=${TRAIN_FINE_PASSES:-1}
+INIT=()
+if [ -n "${INIT_WEIGHTS:-}" ]; then INIT=(--init-weights "$INIT_WEIGHTS"); fi
 export OMP_WAIT_POLICY=PASSIVE
 monai-rigidreg -v train --datalist "$DATA/train.json" --val-datalist "$DATA/val_paper/dataset.json" \
-    --output-dir "$RUN" --ckpt-dir "$RUN/ckpt" --epochs "$EPOCHS" --epoch-length 50 --learning-rate 1e-3 \
-    --num-workers 1 --seed 0 $RESUME \
-    --set batch_size=4 lr_step_epochs=30 \
+    --output-dir "$RUN" --ckpt-dir "$RUN/ckpt" --epochs "$EPOCHS" --epoch-length 50 --learning-rate "$LR" \
+    --num-workers 1 --seed 0 $RESUME "${INIT[@]}" \
+    --set batch_size=4 lr_step_epochs="$LR_STEP" network_def#regression#fine_passes="$TRAIN_FINE_PASSES" \
     loss#loss#w_ssim=0.0 loss#loss#w_ncc=0.0 loss#loss#w_mi=0.0
-# What differs from the bundle's train.json: batch 4, learning rate 1e-3 halved every 30 epochs, 50 iterations per
+# What differs from the bundle's train.json: batch 4, learning rate LR (1e-3) halved every LR_STEP (30) epochs, 50 iterations per
 # epoch, and the image-similarity terms (SSIM, NCC, MI) off: the supervised point distance of the final estimate and
 # of the coarse level (w_levels) is the learning signal. benchmarks/bench_ablation.py measures what the composite
 # loss buys on held-out real CTs at an equal training budget. Everything else is train.json: CorrelationRigidNet

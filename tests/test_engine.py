@@ -98,3 +98,24 @@ def test_plot_history(tmp_path):
              "val_tre": 3.0 / e} for e in range(1, 5)]
     p = plot_history(hist, tmp_path / "c.png")
     assert p.stat().st_size > 10000
+
+
+def test_resume_handler_starts_from_init_weights_unless_a_checkpoint_resumes(tmp_path):
+    """Fine-tuning: ``init_weights`` loads the network (optimizer and schedule start afresh); a checkpoint to resume
+    from wins over it; a missing file is refused at construction."""
+    import torch
+    from ignite.engine import Engine
+
+    src, dst = torch.nn.Linear(3, 2), torch.nn.Linear(3, 2)
+    torch.save(src.state_dict(), tmp_path / "init.pt")
+    assert not torch.equal(src.weight, dst.weight)
+    ResumeHandler(tmp_path / "ckpt", {"network": dst}, resume=False, init_weights=tmp_path / "init.pt").attach(
+        Engine(lambda e, b: None))
+    assert torch.equal(src.weight, dst.weight) and torch.equal(src.bias, dst.bias)
+    # resume=True without a checkpoint: the init weights too
+    other = torch.nn.Linear(3, 2)
+    ResumeHandler(tmp_path / "none", {"network": other}, resume=True, init_weights=tmp_path / "init.pt").attach(
+        Engine(lambda e, b: None))
+    assert torch.equal(src.weight, other.weight)
+    with pytest.raises(FileNotFoundError, match="init_weights"):
+        ResumeHandler(tmp_path, {"network": dst}, init_weights=tmp_path / "missing.pt")

@@ -101,6 +101,9 @@ def test_register_refuses_bad_input_with_one_line_and_no_debris(pair, tmp_path, 
          "missing.nii.gz: no such file or directory (the fixed image)"),
         (["register", "--fixed", pair["fixed"], "--moving", zeros, "--output-dir", work / "out"],
          "the moving (CBCT) image is constant (every voxel is 0): there is nothing to register"),
+        (base + ["--output-dir", work / "out", "--roi", "1,2,3"], "an ROI box needs six finite numbers"),
+        (base + ["--output-dir", work / "out", "--roi", "5000,5000,5000,5100,5100,5100"],
+         "the region of interest does not overlap the CT"),
     ]
     for args, message in cases:
         code, err = run_cli(capsys, args)

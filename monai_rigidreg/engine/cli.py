@@ -37,6 +37,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--num-workers", type=int, default=None, help="DataLoader workers")
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --ckpt-dir")
+    p.add_argument("--init-weights", type=Path, default=None,
+                   help="start the network from these weights (e.g. the shipped models/model.pt: fine-tuning); "
+                        "optimizer and schedule start afresh; a run resumed from a checkpoint ignores it")
     p.add_argument("--nproc", type=int, default=1, help=">1: torchrun with multi_gpu_train.json (gloo on CPU)")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                    help="further bundle overrides, e.g. network_def#channels=[16,32,64,64]")
@@ -50,6 +53,8 @@ def bundle_command(args: argparse.Namespace) -> list[str]:
     for p in (args.datalist, args.val_datalist):
         if not p.is_file():
             raise InputError("datalist not found", p)
+    if args.init_weights is not None and not args.init_weights.is_file():
+        raise InputError("--init-weights: no such file", args.init_weights)
     output_dir = args.output_dir.resolve()
     ckpt_dir = (args.ckpt_dir or args.output_dir / "models").resolve()
     for folder in (output_dir, ckpt_dir):
@@ -70,6 +75,7 @@ def bundle_command(args: argparse.Namespace) -> list[str]:
         "seed": args.seed,
         "num_workers": args.num_workers,
         "resume": True if args.resume else None,
+        "init_weights": str(args.init_weights.resolve()) if args.init_weights else None,
     }
     if args.device:
         overrides["device"] = f"$torch.device('{args.device}')"

@@ -145,7 +145,8 @@ def plot_history(history: list[dict[str, float]], path: str | Path) -> Path:
 
 class ResumeHandler:
     """Resume training from the newest ``checkpoint_epoch=N.pt`` in ``ckpt_dir`` (written by MONAI's
-    ``CheckpointSaver`` with ``save_interval``), when ``resume`` is true and one exists; otherwise do nothing.
+    ``CheckpointSaver`` with ``save_interval``), when ``resume`` is true and one exists; otherwise start from
+    ``init_weights`` (network weights only: a fine-tuning run) where given, or from scratch.
 
     Args:
         ckpt_dir: checkpoint directory.
@@ -153,14 +154,30 @@ class ResumeHandler:
             attached to is restored too (as ``"trainer"``), so that the epoch count resumes.
         resume: switch (a config override: ``--resume true``).
         map_location: device to load tensors onto.
+        init_weights: a network state dict file (e.g. the shipped ``models/model.pt``) loaded into
+            ``load_dict["network"]`` when training does not resume from a checkpoint; the optimizer, the learning
+            rate schedule and the epoch count start afresh. A resumed run ignores it (the checkpoint holds the
+            network it had reached).
     """
 
     def __init__(self, ckpt_dir: str | Path, load_dict: dict[str, Any], resume: bool = True,
-                 map_location: Any = None) -> None:
+                 map_location: Any = None, init_weights: str | Path | None = None) -> None:
         self.ckpt_dir = Path(ckpt_dir)
         self.load_dict = load_dict
         self.resume = bool(resume)
         self.map_location = map_location
+        self.init_weights = Path(init_weights) if init_weights else None
+        if self.init_weights is not None and not self.init_weights.is_file():
+            raise FileNotFoundError(f"init_weights: no such file: {self.init_weights}")
+
+    def _start_from_weights(self) -> None:
+        if self.init_weights is None:
+            return
+        import torch  # only when fine-tuning
+
+        state = torch.load(self.init_weights, map_location=self.map_location, weights_only=True)
+        self.load_dict["network"].load_state_dict(state)
+        logger.info("network initialised from %s (optimizer and schedule start afresh)", self.init_weights)
 
     def latest(self) -> Path | None:
         """The newest epoch checkpoint, or ``None``."""
@@ -173,10 +190,13 @@ class ResumeHandler:
 
     def attach(self, engine: Any) -> None:
         if not self.resume:
+            self._start_from_weights()
             return
         path = self.latest()
         if path is None:
-            logger.info("no checkpoint in %s: training starts from scratch", self.ckpt_dir)
+            logger.info("no checkpoint in %s: training starts from %s", self.ckpt_dir,
+                        self.init_weights or "scratch")
+            self._start_from_weights()
             return
         logger.info("resuming from %s", path)
         load_dict = {**self.load_dict, "trainer": engine}

@@ -243,37 +243,48 @@ class CorrelationRigidNet(nn.Module):
         return feats
 
     def _fit(self, level: _MatchLevel, cells: torch.Tensor, fm: torch.Tensor, ff: torch.Tensor,
-             stride: int) -> torch.Tensor:
+             stride: int, fixed_weight: torch.Tensor | None = None) -> torch.Tensor:
         step = torch.tensor([stride * s for s in self.grid_spacing], dtype=torch.float64, device=fm.device)
         matched, weight = level(fm, ff, cells, step)
+        if fixed_weight is not None:  # the share of each cell inside the match region
+            weight = weight * F.avg_pool3d(fixed_weight.to(weight.dtype), stride).flatten(1)
         return weighted_rigid_fit(cells.unsqueeze(0).expand(fm.shape[0], -1, -1), matched, weight)
 
-    def forward_levels(self, moving: torch.Tensor, fixed: torch.Tensor) -> list[torch.Tensor]:
-        """Estimates ``[B, 6]`` after the coarse level and after each fine pass (mm / degrees, grid centre)."""
+    def forward_levels(self, moving: torch.Tensor, fixed: torch.Tensor,
+                       fixed_weight: torch.Tensor | None = None) -> list[torch.Tensor]:
+        """Estimates ``[B, 6]`` after the coarse level and after each fine pass (mm / degrees, grid centre).
+
+        ``fixed_weight``: optional ``[B, 1, x, y, z]`` weights in [0, 1] on the fixed grid (the match region: a
+        region of interest, bone, the body without the couch); each cell's weight in the rigid fit is multiplied by
+        its mean, so only matches inside the region move the estimate (no weights are learned for it).
+        """
         if moving.shape != fixed.shape:
             raise ValueError(f"moving {moving.shape} and fixed {fixed.shape} must have the same shape")
         if tuple(moving.shape[2:]) != self.grid_size:
             raise ValueError(f"inputs {tuple(moving.shape[2:])} are not on the network grid {self.grid_size}")
+        if fixed_weight is not None and tuple(fixed_weight.shape[2:]) != self.grid_size:
+            raise ValueError(f"fixed_weight {tuple(fixed_weight.shape)} is not on the network grid {self.grid_size}")
         b = moving.shape[0]
         n = len(self.stages)
         feats = self._encode(torch.cat([moving, fixed], 0))
         ff_fine, ff_coarse = feats[n - 2][b:], feats[n - 1][b:]
-        total = self._fit(self.coarse, self.cells_coarse, feats[n - 1][:b], ff_coarse, 2**n)
+        total = self._fit(self.coarse, self.cells_coarse, feats[n - 1][:b], ff_coarse, 2**n, fixed_weight)
         levels = [matrix_to_params_torch(total).to(moving.dtype)]
         for _ in range(self.fine_passes):
             warped = warp_volume(moving, total, self.grid, self.grid)
             fm_fine = self._encode(warped, n - 1)[-1]
-            correction = self._fit(self.fine, self.cells_fine, fm_fine, ff_fine, 2 ** (n - 1))
+            correction = self._fit(self.fine, self.cells_fine, fm_fine, ff_fine, 2 ** (n - 1), fixed_weight)
             total = total @ correction
             levels.append(matrix_to_params_torch(total).to(moving.dtype))
         return levels
 
-    def forward_pair(self, moving: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
+    def forward_pair(self, moving: torch.Tensor, fixed: torch.Tensor,
+                     fixed_weight: torch.Tensor | None = None) -> torch.Tensor:
         """Rigid parameters ``[B, 6]`` (mm, degrees; fixed -> moving about the grid centre)."""
-        return self.forward_levels(moving, fixed)[-1]
+        return self.forward_levels(moving, fixed, fixed_weight)[-1]
 
-    def forward(self, image: torch.Tensor) -> torch.Tensor:
-        """``[B, 2 * C, x, y, z]`` (moving, then fixed) -> ``[B, 6]``."""
+    def forward(self, image: torch.Tensor, fixed_weight: torch.Tensor | None = None) -> torch.Tensor:
+        """``[B, 2 * C, x, y, z]`` (moving, then fixed) -> ``[B, 6]`` (``fixed_weight``: see :meth:`forward_levels`)."""
         if image.shape[1] != 2 * self.in_channels:
             raise ValueError(f"expected {2 * self.in_channels} channels (moving, fixed), got {image.shape[1]}")
-        return self.forward_pair(image[:, : self.in_channels], image[:, self.in_channels :])
+        return self.forward_pair(image[:, : self.in_channels], image[:, self.in_channels :], fixed_weight)

@@ -368,8 +368,10 @@ class GaussNewtonStage(nn.Module):
         return alignment_features(volumes, self.grid_spacing, self.support_threshold, self.highpass_sigma_mm,
                                   self.highpass_weight, self.gradient_weight)
 
-    def forward(self, moving: torch.Tensor, fixed: torch.Tensor, start: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, moving: torch.Tensor, fixed: torch.Tensor, start: torch.Tensor,
+                fixed_weight: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``fixed_weight``: optional ``[B, 1, x, y, z]`` voxel weights in [0, 1] on the fixed grid (the match
+        region); the residuals of each level are weighted by it (average-pooled to the level)."""
         if moving.shape != fixed.shape or moving.ndim != 5:
             raise ValueError(f"moving {tuple(moving.shape)} and fixed {tuple(fixed.shape)} must be equal [B,C,x,y,z]")
         b = moving.shape[0]
@@ -390,9 +392,13 @@ class GaussNewtonStage(nn.Module):
             fm, g = pyramid(feat_m, grid, level)
             ff, _ = pyramid(feat_f, grid, level)
             sup = support if level == 1 else (F.avg_pool3d(support, level) > 0.999).to(support.dtype)
+            wgt = None
+            if fixed_weight is not None:
+                wgt = fixed_weight.to(fm.dtype) if level == 1 else F.avg_pool3d(fixed_weight.to(fm.dtype), level)
             if first:
                 both, res, cover = gauss_newton_align(
                     fm.repeat(2, 1, 1, 1, 1), ff.repeat(2, 1, 1, 1, 1), g, starts, iterations=iters,
+                    weight=None if wgt is None else wgt.repeat(2, 1, 1, 1, 1),
                     moving_support=sup.repeat(2, 1, 1, 1, 1), robust_scale=self.robust_scale, return_residual=True,
                     jacobian=jacobian)
                 # a start that leaves little overlap can show a low mean residual: it must keep at least half the
@@ -401,7 +407,7 @@ class GaussNewtonStage(nn.Module):
                 total = torch.where(from_start.view(b, 1, 1), both[:b], both[b:])
                 first = False
                 continue
-            total = gauss_newton_align(fm, ff, g, total, iterations=iters, moving_support=sup,
+            total = gauss_newton_align(fm, ff, g, total, iterations=iters, weight=wgt, moving_support=sup,
                                        robust_scale=self.robust_scale, bias_degree=self.bias_degree,
                                        jacobian=jacobian)
         return matrix_to_params_torch(total, grid.center()).to(start.dtype), from_start

@@ -63,11 +63,18 @@ class TwoStageRigidNet(nn.Module):
             "scripts alone: torch.jit.script(net.regression); a CorrelationRigidNet, whose re-warp uses its grid, "
             "exports by tracing only)")
 
-    def forward_stages(self, moving: torch.Tensor, fixed: torch.Tensor) -> dict[str, Any]:
-        """Both estimates (see :data:`STAGE_KEYS`); ``moving``, ``fixed``: ``[B, C, x, y, z]`` on the network grid."""
+    def forward_stages(self, moving: torch.Tensor, fixed: torch.Tensor,
+                       fixed_weight: torch.Tensor | None = None) -> dict[str, Any]:
+        """Both estimates (see :data:`STAGE_KEYS`); ``moving``, ``fixed``: ``[B, C, x, y, z]`` on the network grid.
+
+        ``fixed_weight``: optional ``[B, 1, x, y, z]`` match-region weights in [0, 1] on the fixed grid (region of
+        interest, bone, body without couch): they weigh the learned network's cells in its rigid fit (a regression
+        with ``forward_levels``; an MLP regression sees the whole grid) and the fine stage's residuals.
+        """
         extra: dict[str, Any] = {}
         if hasattr(self.regression, "forward_levels"):
-            levels = self.regression.forward_levels(moving, fixed)
+            levels = (self.regression.forward_levels(moving, fixed) if fixed_weight is None
+                      else self.regression.forward_levels(moving, fixed, fixed_weight))
             coarse = levels[-1]
             extra["levels"] = levels[:-1]
         else:
@@ -75,18 +82,19 @@ class TwoStageRigidNet(nn.Module):
         if self.fine_stage is None or not self.fine_stage_enabled:
             return {"params": coarse, "coarse": coarse,
                     "from_coarse": torch.ones(coarse.shape[0], dtype=torch.bool, device=coarse.device), **extra}
-        params, from_coarse = self.fine_stage(moving, fixed, coarse)
+        params, from_coarse = self.fine_stage(moving, fixed, coarse, fixed_weight)
         return {"params": params, "coarse": coarse, "from_coarse": from_coarse, **extra}
 
-    def forward_pair(self, moving: torch.Tensor, fixed: torch.Tensor) -> torch.Tensor:
+    def forward_pair(self, moving: torch.Tensor, fixed: torch.Tensor,
+                     fixed_weight: torch.Tensor | None = None) -> torch.Tensor:
         """The final estimate ``[B, 6]`` (mm, degrees, fixed -> moving about the grid centre)."""
-        return self.forward_stages(moving, fixed)["params"]
+        return self.forward_stages(moving, fixed, fixed_weight)["params"]
 
-    def forward(self, image: torch.Tensor, stages: bool = False) -> Any:
+    def forward(self, image: torch.Tensor, stages: bool = False, fixed_weight: torch.Tensor | None = None) -> Any:
         """``[B, 2 * C, x, y, z]`` -> ``[B, 6]`` (or the :meth:`forward_stages` dict with ``stages=True``)."""
         if image.shape[1] != 2 * self.in_channels:
             raise ValueError(f"expected {2 * self.in_channels} channels (moving, fixed), got {image.shape[1]}")
-        out = self.forward_stages(image[:, : self.in_channels], image[:, self.in_channels :])
+        out = self.forward_stages(image[:, : self.in_channels], image[:, self.in_channels :], fixed_weight)
         return out if stages else out["params"]
 
 

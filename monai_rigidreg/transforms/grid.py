@@ -163,8 +163,12 @@ def antialias_for_grid(img: torch.Tensor, in_grid: Grid, out_grid: Grid) -> torc
     return gaussian_smooth(x.float() if not x.is_floating_point() else x, sigmas).to(img.dtype)
 
 
-def crop_to_grid(img: torch.Tensor, in_grid: Grid, out_grid: Grid, margin: int) -> tuple[torch.Tensor, Grid]:
+def crop_to_grid(img: torch.Tensor, in_grid: Grid, out_grid: Grid, margin: int,
+                 matrix: np.ndarray | None = None) -> tuple[torch.Tensor, Grid]:
     """The part of a ``[C, x, y, z]`` image on ``in_grid`` that ``out_grid`` can sample, plus ``margin`` voxels.
+
+    ``matrix``: the 4x4 physical transform (``out_grid`` point -> ``in_grid`` point, LPS mm) the sampling goes
+    through (default identity).
 
     Returns the cropped view and its grid (same spacing and direction, shifted origin); the image itself when the
     crop would keep (almost) everything. Sampling ``out_grid`` from the crop gives the same values as from the
@@ -173,6 +177,8 @@ def crop_to_grid(img: torch.Tensor, in_grid: Grid, out_grid: Grid, margin: int) 
     corners = np.array([[i, j, k] for i in (0, out_grid.size[0] - 1) for j in (0, out_grid.size[1] - 1)
                         for k in (0, out_grid.size[2] - 1)], dtype=np.float64)
     phys = transform_points(out_grid.index_to_physical(), corners)
+    if matrix is not None:
+        phys = transform_points(np.asarray(matrix, dtype=np.float64), phys)
     idx = transform_points(np.linalg.inv(in_grid.index_to_physical()), phys)
     lo = np.maximum(np.floor(idx.min(0)).astype(int) - 1 - margin, 0)
     hi = np.minimum(np.ceil(idx.max(0)).astype(int) + 2 + margin, np.array(in_grid.size))
@@ -193,10 +199,13 @@ def resample_to_grid(
     padding_mode: str = "zeros",
     padding_value: PaddingValue = -1000.0,
     antialias: bool = True,
+    matrix: np.ndarray | None = None,
 ) -> torch.Tensor:
     """The resampling of :class:`ResampleToNetworkGrid` on a plain tensor: ``[C, x, y, z]`` on ``in_grid`` ->
     ``[C, *grid.size]`` (crop to what ``grid`` covers, anti-alias with ``"bilinear"``, sample physically).
 
+    ``matrix``: optional 4x4 physical transform, ``grid`` point -> ``in_grid`` point (LPS mm; fixed -> moving when
+    ``img`` is the moving image): ``out(y) = img(matrix @ y)``, one interpolation (default identity).
     ``img`` may be a non-contiguous view (e.g. a transposed ``SimpleITK`` array): only the cropped part is copied.
     """
     # only the part of the input the grid covers is filtered and sampled (a 256^3 CT for a 128 mm network grid:
@@ -204,9 +213,10 @@ def resample_to_grid(
     sample_grid = in_grid
     if antialias and mode == "bilinear":
         margin = int(np.ceil(4.0 * max(antialias_sigmas(in_grid, grid)))) + 1
-        img, sample_grid = crop_to_grid(img, in_grid, grid, margin)
+        img, sample_grid = crop_to_grid(img, in_grid, grid, margin, matrix)
         img = antialias_for_grid(img, sample_grid, grid)
-    return resample_physical(img, np.eye(4), grid, sample_grid, mode, padding_mode, padding_value)
+    return resample_physical(img, np.eye(4) if matrix is None else matrix, grid, sample_grid, mode, padding_mode,
+                             padding_value)
 
 
 def _resample_and_push(

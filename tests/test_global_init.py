@@ -1,0 +1,180 @@
+"""Global initialisation (large offsets) and the match region (ROI, bone): exact FFT correlation, recovered large
+motions with the shipped network, and an ROI that decides which of two differently moving halves is matched."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+import torch
+
+from monai_rigidreg.errors import InputError
+from monai_rigidreg.geometry import Grid, matrix_to_sitk, params_to_matrix, recenter_params, target_registration_error
+from monai_rigidreg.global_init import global_search, masked_ncc_map, matrix_distance_mm
+from monai_rigidreg.match_region import match_weight, parse_roi
+from monai_rigidreg.registration import RigidRegistrar
+from monai_rigidreg.simulation.synth import synth_hu_volume, synth_label_map
+
+ISO = np.array([20.0, -10.0, 15.0])
+"""The CBCT isocentre, mm from the CT centre (the origin)."""
+
+
+def _image(array_xyz: np.ndarray, grid: Grid) -> sitk.Image:
+    img = sitk.GetImageFromArray(np.ascontiguousarray(array_xyz.transpose(2, 1, 0)).astype(np.float32))
+    img.SetSpacing(grid.spacing)
+    img.SetOrigin(grid.origin)
+    img.SetDirection(grid.direction)
+    return img
+
+
+@pytest.fixture(scope="module")
+def ct() -> sitk.Image:
+    """A synthetic-anatomy CT (HU), 96^3 at 3 mm (288 mm) centred on the origin."""
+    grid = Grid.centered((96, 96, 96), (3.0, 3.0, 3.0))
+    labels = synth_label_map(grid, 11)
+    return _image(synth_hu_volume(labels, 11, grid).numpy(), grid)
+
+
+def _cbct(ct: sitk.Image, matrix: np.ndarray, seed: int = 0) -> sitk.Image:
+    """A CBCT-like image, 64^3 at 2 mm centred on the isocentre: ``CBCT(y) = CT(T^-1 y)`` plus noise and a smooth
+    shading (the CBCT's contrast is not the CT's)."""
+    grid = Grid.centered((64, 64, 64), (2.0, 2.0, 2.0), ISO)
+    cb = sitk.Resample(ct, grid.to_sitk(), matrix_to_sitk(np.linalg.inv(matrix)), sitk.sitkLinear, -1000.0)
+    arr = sitk.GetArrayFromImage(cb)
+    rng = np.random.default_rng(seed)
+    z = np.linspace(-1, 1, arr.shape[0])[:, None, None]
+    arr = arr + 30.0 * rng.standard_normal(arr.shape) + 40.0 * z
+    out = sitk.GetImageFromArray(arr.astype(np.float32))
+    out.CopyInformation(cb)
+    return out
+
+
+def _brute_ncc(volume, template, mask, shift):
+    x, y, z = template.shape
+    win = volume[shift[0]:shift[0] + x, shift[1]:shift[1] + y, shift[2]:shift[2] + z]
+    m = mask > 0
+    a, b = win[m].double(), template[m].double()
+    a, b = a - a.mean(), b - b.mean()
+    return float((a * b).sum() / torch.sqrt((a * a).sum() * (b * b).sum()))
+
+
+def test_masked_ncc_map_is_the_ncc_at_every_shift():
+    g = torch.Generator().manual_seed(0)
+    volume = torch.randn(20, 18, 16, generator=g)
+    template = torch.randn(8, 7, 6, generator=g)
+    mask = (torch.rand(8, 7, 6, generator=g) > 0.3).float()
+    ncc = masked_ncc_map(volume, template, mask, min_overlap=0.0)
+    assert tuple(ncc.shape) == (13, 12, 11)
+    for shift in [(0, 0, 0), (12, 11, 10), (3, 7, 2), (5, 0, 9)]:
+        assert float(ncc[shift]) == pytest.approx(_brute_ncc(volume, template, mask, shift), abs=1e-9)
+    # the template cut out of the volume is found where it was cut, with NCC 1
+    template = volume[4:12, 9:16, 3:9].clone()
+    ncc = masked_ncc_map(volume, template, mask)
+    assert tuple(np.unravel_index(int(ncc.argmax()), ncc.shape)) == (4, 9, 3)
+    assert float(ncc.max()) == pytest.approx(1.0, abs=1e-9)
+
+
+def test_global_search_finds_a_large_translation_and_the_rotation_basin(ct):
+    grid_pts = Grid.centered((8, 8, 8), (12.0, 12.0, 12.0), ISO)
+    pts = np.stack(np.meshgrid(*[np.arange(8.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    pts = pts @ grid_pts.index_to_physical()[:3, :3].T + grid_pts.index_to_physical()[:3, 3]
+    # a 60 mm table shift: the best candidate is the identity rotation, within a fraction of the 6 mm step
+    truth = params_to_matrix([40.0, -35.0, 27.0, 0.0, 0.0, 0.0], ISO)
+    cands = global_search(ct, _cbct(ct, truth))
+    assert cands[0].rotation_deg == (0.0, 0.0, 0.0)
+    assert matrix_distance_mm(cands[0].matrix, truth, pts) < 2.0
+    assert [c.score for c in cands] == sorted((c.score for c in cands), reverse=True)
+    # with a 40-degree rotation about y, the +25-degree candidate wins and leaves the network a 15-degree residual
+    truth = params_to_matrix([-30.0, 25.0, 20.0, 0.0, 40.0, 0.0], ISO)
+    cands = global_search(ct, _cbct(ct, truth, seed=1))
+    assert cands[0].rotation_deg == (0.0, 25.0, 0.0)
+    assert matrix_distance_mm(cands[0].matrix, truth, pts) < matrix_distance_mm(np.eye(4), truth, pts) / 2
+
+
+@pytest.fixture(scope="module")
+def registrar():
+    return RigidRegistrar.from_bundle(device="cpu")
+
+
+def _tre(result, truth_about_iso, pts):
+    truth = recenter_params(truth_about_iso, ISO, result.center)
+    return target_registration_error(result.params, truth, pts, center=result.center)
+
+
+def _box_points(lo, hi, n=5):
+    axes = [np.linspace(a, b, n) for a, b in zip(lo, hi)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_default_registration_recovers_60mm_40deg(ct, registrar):
+    truth = [38.0, -36.0, 28.0, 0.0, 0.0, 40.0]  # |t| = 60 mm about the isocentre, 40 degrees about z
+    cbct = _cbct(ct, params_to_matrix(truth, ISO), seed=2)
+    pts = _box_points(ISO - 40, ISO + 40)
+    without = registrar(ct, cbct, resample_moving=False, global_init=False)
+    assert _tre(without, truth, pts) > 10.0  # beyond the learned network's capture range on its own
+    res = registrar(ct, cbct, resample_moving=False)  # the default: global initialisation on
+    assert res.details["start"] == "search"
+    assert res.details["global_search"]["best"]["rotation_deg"] == [0.0, 0.0, 25.0]
+    assert _tre(res, truth, pts) < 1.0
+    assert not res.flagged
+    assert "global_search" in res.timings
+
+
+def test_roi_decides_which_of_two_differently_moving_halves_is_matched(ct, registrar):
+    # the half x < ISO_x moved by one motion, the half x >= ISO_x by another (6 mm and 3 degrees apart)
+    left, right = [4.0, -3.0, 2.0, 0.0, 0.0, 2.0], [-2.0, 3.0, -3.0, 2.0, 0.0, -1.0]
+    cb_left = _cbct(ct, params_to_matrix(left, ISO), seed=3)
+    cb_right = _cbct(ct, params_to_matrix(right, ISO), seed=3)
+    arr = sitk.GetArrayFromImage(cb_left)
+    x = np.arange(64) * 2.0 + cb_left.GetOrigin()[0]
+    arr[:, :, x >= ISO[0]] = sitk.GetArrayViewFromImage(cb_right)[:, :, x >= ISO[0]]
+    cbct = sitk.GetImageFromArray(arr)
+    cbct.CopyInformation(cb_left)
+    # the ROI boxes stay 10 mm clear of the cut (the halves' CT regions differ by the motions, a few mm)
+    box_left = (ISO[0] - 54, ISO[1] - 40, ISO[2] - 40, ISO[0] - 10, ISO[1] + 40, ISO[2] + 40)
+    box_right = (ISO[0] + 10, ISO[1] - 40, ISO[2] - 40, ISO[0] + 54, ISO[1] + 40, ISO[2] + 40)
+    res_l = registrar(ct, cbct, resample_moving=False, roi=box_left)
+    res_r = registrar(ct, cbct, resample_moving=False, roi=box_right)
+    pts_l, pts_r = _box_points(box_left[:3], box_left[3:]), _box_points(box_right[:3], box_right[3:])
+    assert _tre(res_l, left, pts_l) < 0.75
+    assert _tre(res_r, right, pts_r) < 0.75
+    # each is matched to its own half, not to the other one
+    assert _tre(res_l, right, pts_l) > 3.0
+    assert _tre(res_r, left, pts_r) > 3.0
+    assert res_l.details["match_region"] == {"roi": list(box_left), "match": "soft"}
+
+
+def test_match_weight_box_on_an_oblique_ct_and_bone_mode(ct):
+    # an oblique CT: the box is in physical LPS mm, whatever the direction cosines
+    rot = params_to_matrix([0, 0, 0, 10.0, -20.0, 30.0])[:3, :3]
+    img = sitk.Image(20, 24, 16, sitk.sitkFloat32)
+    img.SetSpacing((2.0, 3.0, 4.0))
+    img.SetOrigin((-15.0, 7.0, 3.0))
+    img.SetDirection(tuple(rot.flatten()))
+    img = img - 1000.0
+    box = (-10.0, 0.0, 0.0, 20.0, 40.0, 30.0)
+    w = match_weight(img, roi=box)
+    arr = sitk.GetArrayViewFromImage(w)
+    for idx in [(0, 0, 0), (5, 7, 3), (19, 23, 15), (10, 12, 8), (3, 20, 11)]:
+        p = np.array(img.TransformIndexToPhysicalPoint(idx))
+        inside = bool(np.all(p >= box[:3]) and np.all(p <= box[3:]))
+        assert bool(arr[idx[2], idx[1], idx[0]] > 0) == inside
+    assert 0 < arr.sum() < arr.size
+    # bone match: only bone and its margin, and a region without bone is refused
+    bone = match_weight(ct, match="bone")
+    ct_arr, b_arr = sitk.GetArrayViewFromImage(ct), sitk.GetArrayViewFromImage(bone)
+    assert np.all(b_arr[ct_arr > 250] > 0)
+    assert 0 < b_arr.mean() < 0.6
+    with pytest.raises(InputError, match="no CT voxel above"):
+        match_weight(img, match="bone")
+    assert match_weight(ct) is None
+
+
+@pytest.mark.parametrize("bad", ["1,2,3", "a,b,c,d,e,f", [0, 0, 0, 10, 0, 10], [np.nan, 0, 0, 1, 1, 1]])
+def test_parse_roi_refuses_bad_boxes(bad):
+    with pytest.raises(InputError):
+        parse_roi(bad)
+
+
+def test_parse_roi_orders_corners_and_reads_strings():
+    assert parse_roi("10,0,5,-10,20,-5") == (-10.0, 0.0, -5.0, 10.0, 20.0, 5.0)
