@@ -3,7 +3,7 @@
 The learned network sees a 128 mm cube around the CBCT centre and captures about +-30 mm / +-30 degrees. Clinical
 pairs can be further apart (table shifts of several centimetres, the CBCT isocentre anywhere in a larger CT), so
 before the network, :func:`global_search` compares the CBCT with the CT at **every** translation within
-``max_translation_mm`` on a coarse grid, for each of a few rotation candidates:
+``max_translation_mm`` (72 mm per axis) on a coarse grid (8 mm), for each of a few rotation candidates:
 
 * the CBCT (a template on an axis-aligned ``spacing_mm`` grid around its centre, rotated by the candidate about that
   centre, with its field-of-view mask) and the CT (the same spacing, the template's extent plus the search margin,
@@ -17,8 +17,7 @@ the CBCT centre, ``R`` the candidate rotation and ``d`` the CT shift the correla
 ``docs/conventions.md``). :class:`~monai_rigidreg.registration.RigidRegistrar` uses the best candidate as a second
 start of the network (the first is the identity) and keeps the estimate whose CBCT field of view matches the CT best.
 
-Cost (``benchmarks/bench_clinical_geometry.py`` prints it as the ``global_search`` timing): 7 rotation candidates
-at 6 mm over +-80 mm, about 0.1-0.3 s on 2 CPU cores.
+Cost: ``RegistrationResult.timings["global_search"]`` (19 rotation candidates at 8 mm over +-72 mm).
 """
 
 from __future__ import annotations
@@ -30,19 +29,34 @@ import numpy as np
 import SimpleITK as sitk
 import torch
 
+from monai_rigidreg.confidence import cylindrical_fov_mask
 from monai_rigidreg.geometry import Grid, params_to_matrix, transform_points
-from monai_rigidreg.transforms.grid import resample_to_grid
+from monai_rigidreg.transforms.grid import antialias_for_grid, crop_to_grid, resample_to_grid
 
-__all__ = ["SearchCandidate", "global_search", "masked_ncc_map", "DEFAULT_ROTATIONS_DEG", "matrix_distance_mm"]
+__all__ = ["SearchCandidate", "global_search", "masked_ncc_map", "volume_spectra", "DEFAULT_ROTATIONS_DEG",
+           "matrix_distance_mm"]
 
-DEFAULT_ROTATIONS_DEG: tuple[tuple[float, float, float], ...] = (
-    (0.0, 0.0, 0.0),
-    (25.0, 0.0, 0.0), (-25.0, 0.0, 0.0),
-    (0.0, 25.0, 0.0), (0.0, -25.0, 0.0),
-    (0.0, 0.0, 25.0), (0.0, 0.0, -25.0),
-)
-"""Rotation candidates (degrees about x, y, z): the identity and +-25 degrees about each axis. The learned network
-captures about +-30 degrees around a start, so single-axis rotations up to about 50 degrees are within reach."""
+def _rotation_candidates(step: float = 25.0) -> tuple[tuple[float, float, float], ...]:
+    """The identity, +-``step`` about each axis, and +-``step`` about each pair of axes (19 candidates)."""
+    out: list[tuple[float, float, float]] = [(0.0, 0.0, 0.0)]
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            r = [0.0, 0.0, 0.0]
+            r[axis] = sign * step
+            out.append((r[0], r[1], r[2]))
+    for a, b in ((0, 1), (0, 2), (1, 2)):
+        for sa in (1.0, -1.0):
+            for sb in (1.0, -1.0):
+                r = [0.0, 0.0, 0.0]
+                r[a], r[b] = sa * step, sb * step
+                out.append((r[0], r[1], r[2]))
+    return tuple(out)
+
+
+DEFAULT_ROTATIONS_DEG: tuple[tuple[float, float, float], ...] = _rotation_candidates(25.0)
+"""Rotation candidates (degrees about x, y, z): the identity, +-25 degrees about each axis and about each pair of
+axes (19). The learned network captures about +-30 degrees around a start, so rotations up to about 45 degrees on
+one or two axes at once are within reach of a candidate."""
 
 
 @dataclass(frozen=True)
@@ -67,7 +81,8 @@ class SearchCandidate:
 
 
 def masked_ncc_map(volume: torch.Tensor, template: torch.Tensor, mask: torch.Tensor,
-                   min_overlap: float = 0.5) -> torch.Tensor:
+                   min_overlap: float = 0.5, fft_dtype: torch.dtype = torch.float64,
+                   spectra: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """Masked NCC of ``template`` (where ``mask`` > 0) with ``volume`` at every shift that keeps it inside.
 
     Args:
@@ -76,6 +91,10 @@ def masked_ncc_map(volume: torch.Tensor, template: torch.Tensor, mask: torch.Ten
         mask: ``[x, y, z]`` template weights in {0, 1}.
         min_overlap: shifts where the volume's variance under the mask is below this fraction of its median are
             set to -1 (flat regions, e.g. air, have no defined NCC).
+        fft_dtype: precision of the FFTs (float32 halves their cost; intensities of order 1 keep it exact to
+            about 1e-5 in NCC, ``tests/test_global_init.py``); the NCC itself is combined in float64.
+        spectra: the volume's ``(rfftn(volume), rfftn(volume**2))`` in ``fft_dtype`` when several templates are
+            correlated with one volume (:func:`volume_spectra`).
 
     Returns:
         ``[X - x + 1, Y - y + 1, Z - z + 1]`` float64: entry ``s`` is the NCC of ``template`` with
@@ -91,15 +110,16 @@ def masked_ncc_map(volume: torch.Tensor, template: torch.Tensor, mask: torch.Ten
     n = m.sum()
     if n < 10:
         return torch.full(valid, -1.0, dtype=torch.float64)
+    f_hat, f2_hat = spectra if spectra is not None else (None, None)
 
     def corr(a_hat: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         """sum_y a(y + s) b(y) for the valid shifts s (circular correlation; b zero-padded to the volume)."""
-        b_hat = torch.fft.rfftn(b, s=shape)
+        b_hat = torch.fft.rfftn(b.to(fft_dtype), s=shape)
         out = torch.fft.irfftn(a_hat * b_hat.conj(), s=shape)
-        return out[: valid[0], : valid[1], : valid[2]]
+        return out[: valid[0], : valid[1], : valid[2]].to(torch.float64)
 
-    f_hat = torch.fft.rfftn(f)
-    f2_hat = torch.fft.rfftn(f * f)
+    f_hat = torch.fft.rfftn(f.to(fft_dtype)) if f_hat is None else f_hat
+    f2_hat = torch.fft.rfftn((f * f).to(fft_dtype)) if f2_hat is None else f2_hat
     tm = t * m
     s_t = tm.sum()
     s_tt = (tm * t).sum()
@@ -112,6 +132,13 @@ def masked_ncc_map(volume: torch.Tensor, template: torch.Tensor, mask: torch.Ten
     floor = min_overlap * float(var_f.median()) + 1e-12
     ncc = num / torch.sqrt(var_f * var_t + 1e-12)
     return torch.where(var_f > floor, ncc, torch.full_like(ncc, -1.0))
+
+
+def volume_spectra(volume: torch.Tensor, fft_dtype: torch.dtype = torch.float64
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(rfftn(volume), rfftn(volume**2))`` for :func:`masked_ncc_map` with many templates."""
+    f = volume.to(torch.float64)
+    return torch.fft.rfftn(f.to(fft_dtype)), torch.fft.rfftn((f * f).to(fft_dtype))
 
 
 def _subvoxel_peak(ncc: torch.Tensor) -> tuple[np.ndarray, float]:
@@ -143,34 +170,38 @@ def global_search(
     fixed: sitk.Image,
     moving: sitk.Image,
     moving_fov: sitk.Image | None = None,
-    spacing_mm: float = 6.0,
-    max_translation_mm: float = 80.0,
+    spacing_mm: float = 8.0,
+    max_translation_mm: float = 72.0,
     template_extent_mm: float = 192.0,
     rotations_deg: Sequence[Sequence[float]] = DEFAULT_ROTATIONS_DEG,
     hu_range: tuple[float, float] = (-1000.0, 2000.0),
+    fixed_body: sitk.Image | None = None,
+    moving_body: sitk.Image | None = None,
 ) -> list[SearchCandidate]:
     """Best translation for each rotation candidate, by masked NCC over all shifts (see the module doc).
 
     Args:
         fixed: planning CT (HU), any grid.
         moving: CBCT (HU), any grid overlapping the CT's physical space.
-        moving_fov: CBCT field-of-view mask on the CBCT grid (default: where the CBCT is above air, -990 HU).
+        moving_fov: CBCT field-of-view mask on the CBCT grid (default: the inscribed cylinder,
+            :func:`~monai_rigidreg.confidence.cylindrical_fov_mask`).
         spacing_mm: search grid spacing (the translation step before sub-voxel refinement).
         max_translation_mm: half-width of the searched translations along each axis.
         template_extent_mm: the template covers at most this cube of the CBCT around its centre.
         rotations_deg: rotation candidates ``(rx, ry, rz)`` about the CBCT centre, degrees.
         hu_range: intensities are clipped to this window first.
+        fixed_body, moving_body: optional body masks (any grid on the image's physical space, e.g.
+            :func:`~monai_rigidreg.body.coarse_body_mask`): outside them the image counts as air (the couches).
 
     Returns:
         one :class:`SearchCandidate` per rotation, best score first.
     """
     ct, ct_grid = _image_tensor(fixed)
     cb, cb_grid = _image_tensor(moving)
-    if moving_fov is None:
-        fov = (cb > -990.0).to(torch.float32)
-        fov_grid = cb_grid
-    else:
-        fov, fov_grid = _image_tensor(moving_fov)
+    if moving_fov is None:  # the registration's default: the inscribed cylinder (not "above air": a mask of the
+        # tissue alone lets the template slide over the body by several mm)
+        moving_fov = cylindrical_fov_mask(moving)
+    fov, fov_grid = _image_tensor(moving_fov)
     center = cb_grid.center()
     lo, hi = cb_grid.physical_extent()
     extent = np.minimum(np.asarray(hi) - np.asarray(lo), template_extent_mm)
@@ -181,16 +212,33 @@ def global_search(
     s_grid = Grid.centered(s_size, (spacing_mm,) * 3, center)
     a, b = hu_range
     volume = resample_to_grid(ct.clamp(a, b), ct_grid, s_grid, "bilinear", "zeros", a)[0]
+    volume = (volume - a) / (b - a)  # intensities of order 1: float32 FFTs stay accurate
+    if fixed_body is not None:
+        body, body_grid = _image_tensor(fixed_body)
+        inside = resample_to_grid(body, body_grid, s_grid, "bilinear", "zeros", 0.0, antialias=False)[0] > 0.5
+        volume = torch.where(inside, volume, torch.zeros_like(volume))
+    cb_body = None
+    if moving_body is not None:
+        cb_body = _image_tensor(moving_body)
     t_origin = np.asarray(t_grid.origin, dtype=np.float64)
     s_origin = np.asarray(s_grid.origin, dtype=np.float64)
     out: list[SearchCandidate] = []
-    cb_clamped = cb.clamp(a, b)
+    # the CBCT is anti-aliased once for the template spacing (a rotation does not change the spacing), then every
+    # candidate samples it without further smoothing
+    crop, crop_grid = crop_to_grid(cb, cb_grid, s_grid, 0)
+    cb_smooth = antialias_for_grid((crop.clamp(a, b) - a) / (b - a), crop_grid, t_grid)
+    spectra = volume_spectra(volume, torch.float32)
     for rot in rotations_deg:
         r_matrix = params_to_matrix([0.0, 0.0, 0.0, *[float(v) for v in rot]], center)
-        template = resample_to_grid(cb_clamped, cb_grid, t_grid, "bilinear", "zeros", a, matrix=r_matrix)[0]
+        template = resample_to_grid(cb_smooth, crop_grid, t_grid, "bilinear", "zeros", 0.0, antialias=False,
+                                    matrix=r_matrix)[0]
+        if cb_body is not None:
+            inside = resample_to_grid(cb_body[0], cb_body[1], t_grid, "bilinear", "zeros", 0.0, antialias=False,
+                                      matrix=r_matrix)[0] > 0.5
+            template = torch.where(inside, template, torch.zeros_like(template))
         mask = resample_to_grid(fov, fov_grid, t_grid, "nearest", "zeros", 0.0, antialias=False,
                                 matrix=r_matrix)[0]
-        ncc = masked_ncc_map(volume, template, mask)
+        ncc = masked_ncc_map(volume, template, mask, fft_dtype=torch.float32, spectra=spectra)
         sub, score = _subvoxel_peak(ncc)
         shift = s_origin + sub * spacing_mm - t_origin  # axis-aligned grids: index offset * spacing
         to_shifted = np.eye(4)

@@ -48,13 +48,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="the learned network alone: the regression's estimate without the Gauss-Newton stage (to "
                    "measure it; with --refine the optimizer still runs)")
     p.add_argument("--no-global-init", action="store_true",
-                   help="skip the global search for large offsets (on by default: translations over +-80 mm for "
-                   "seven rotation candidates; the network also starts from its best candidate where the two disagree)")
+                   help="skip the global search for large offsets (on by default: translations over +-72 mm for "
+                   "19 rotation candidates; the network also starts from its best candidate where the two disagree)")
     p.add_argument("--roi", default=None, metavar="X0,Y0,Z0,X1,Y1,Z1|MASK",
                    help="match only this region of the CT (clip box): a box in CT LPS mm, or a mask image on the CT's "
                    "physical space (non-zero inside)")
     p.add_argument("--match", choices=("soft", "bone"), default="soft",
                    help="soft: all tissue (default); bone: the CT's bone and a few mm around it")
+    p.add_argument("--keep-couch", action="store_true",
+                   help="keep the couches in the match (by default everything outside each image's body, the CT's "
+                   "and the treatment couch, counts as air: they do not move with the patient)")
     p.add_argument("--transform-format", choices=("tfm", "h5"), default="tfm",
                    help="ITK transform file: transform.tfm (text) or transform.h5 (HDF5)")
     p.add_argument("--fail-on-flag", action="store_true",
@@ -99,10 +102,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _match_options(args: argparse.Namespace) -> dict[str, Any]:
-    """``global_init``, ``roi`` (checked: a bad box or mask ends the run before the network is loaded) and ``match``."""
+    """``global_init``, ``roi`` (checked: a bad box or mask ends the run before the network is loaded), ``match`` and
+    ``keep_couch``."""
     from monai_rigidreg.match_region import parse_roi
 
-    return {"global_init": False if args.no_global_init else None, "roi": parse_roi(args.roi), "match": args.match}
+    return {"global_init": False if args.no_global_init else None, "roi": parse_roi(args.roi), "match": args.match,
+            "keep_couch": args.keep_couch}
 
 
 def _run_batch(args: argparse.Namespace, registrar_cls: Any, evaluator_cls: Any, pairs_fn: Any) -> int:

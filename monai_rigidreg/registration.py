@@ -26,6 +26,7 @@ import torch
 from monai.data import MetaTensor
 from torch import nn
 
+from monai_rigidreg.body import coarse_body_mask
 from monai_rigidreg.bundle import default_bundle_path, load_bundle_network
 from monai_rigidreg.classical import register_sitk
 from monai_rigidreg.confidence import (
@@ -305,6 +306,7 @@ class RigidRegistrar:
         global_init: bool | None = None,
         roi: RoiLike = None,
         match: str = "soft",
+        keep_couch: bool = False,
     ) -> RegistrationResult:
         """Register ``moving`` (CBCT) to ``fixed`` (CT); see :func:`register` (``fine_stage=False``: the learned
         regression alone, also in the confidence check's swapped-input estimate, and no global search; ``None``:
@@ -313,14 +315,15 @@ class RigidRegistrar:
             if global_init is None:
                 global_init = self.global_init and fine_stage is not False
             result = self._register(fixed, moving, refine, cascade_steps, resample_moving, moving_fov, assess,
-                                    bool(global_init), roi, match)
+                                    bool(global_init), roi, match, keep_couch)
             used = getattr(self.network, "fine_stage", None) is not None and getattr(
                 self.network, "fine_stage_enabled", True)
         result.details["fine_stage"] = bool(used)
         return result
 
     def _run_from(self, fixed_img: sitk.Image, moving_img: sitk.Image, start: np.ndarray, steps: int | None,
-                  weight_img: sitk.Image | None, timings: dict[str, float]) -> _Run:
+                  weight_img: sitk.Image | None, timings: dict[str, float],
+                  bodies: tuple[sitk.Image | None, sitk.Image | None] = (None, None)) -> _Run:
         """The network from a start (4x4 fixed -> moving, LPS mm): the grid is centred on the CT point the start
         maps to the CBCT centre, the CBCT is sampled through the start (one interpolation), the network estimates
         the residual and the total is ``start o residual``. Adds to ``timings["preprocess"]`` and ``["network"]``."""
@@ -331,6 +334,11 @@ class RigidRegistrar:
         grid = self.grid_spec.centered(center)
         fixed_t = self.preprocess(fixed_img, grid)
         moving_t = self.preprocess(moving_img, grid, None if identity else start)
+        # outside the bodies (the couches) is air: 0 after the HU normalization
+        if bodies[0] is not None:
+            fixed_t = fixed_t * (self._on_grid(bodies[0], grid, "bilinear", 0.0) > 0.5)
+        if bodies[1] is not None:
+            moving_t = moving_t * (self._on_grid(bodies[1], grid, "bilinear", 0.0, None if identity else start) > 0.5)
         weight_t = None if weight_img is None else self._on_grid(weight_img, grid, "bilinear", 0.0)
         timings["preprocess"] = timings.get("preprocess", 0.0) + time.perf_counter() - t
         t = time.perf_counter()
@@ -351,6 +359,7 @@ class RigidRegistrar:
         global_init: bool,
         roi: RoiLike,
         match: str,
+        keep_couch: bool,
     ) -> RegistrationResult:
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
@@ -370,10 +379,16 @@ class RigidRegistrar:
         if refine or assess or global_init:
             fov_img = cylindrical_fov_mask(moving_img) if moving_fov is None else moving_fov
 
-        run = self._run_from(fixed_img, moving_img, np.eye(4), cascade_steps, weight_img, timings)
+        bodies: tuple[sitk.Image | None, sitk.Image | None] = (None, None)
+        if not keep_couch:  # the couches do not move with the patient: everything outside the bodies is air
+            t = time.perf_counter()
+            bodies = (coarse_body_mask(fixed_img), coarse_body_mask(moving_img, fov=moving_fov))
+            timings["body"] = time.perf_counter() - t
+        run = self._run_from(fixed_img, moving_img, np.eye(4), cascade_steps, weight_img, timings, bodies)
         details: dict[str, Any] = {"network_params": {},
                                    "cascade_steps": self.cascade_steps if cascade_steps is None else cascade_steps,
-                                   "device": str(self.device), "start": "identity"}
+                                   "device": str(self.device), "start": "identity",
+                                   "couch_excluded": bool(not keep_couch and bodies[0] is not None)}
         if roi is not None or match != "soft":
             details["match_region"] = {"roi": _jsonable(roi) if not isinstance(parse_roi(roi), sitk.Image)
                                        else "mask", "match": match}
@@ -381,8 +396,8 @@ class RigidRegistrar:
             details["warnings"] = warnings
         if global_init:
             t = time.perf_counter()
-            candidates = global_search(fixed_img, moving_img, fov_img, hu_range=self.hu_range,
-                                       **self.search_settings)
+            candidates = global_search(fixed_img, moving_img, fov_img, hu_range=self.hu_range, fixed_body=bodies[0],
+                                       moving_body=bodies[1], **self.search_settings)
             best = candidates[0]
             agree = matrix_distance_mm(best.matrix, run.total, grid_points(run.grid, 8))
             search = {"best": best.to_dict(), "distance_to_identity_start_mm": round(agree, 2),
@@ -392,7 +407,7 @@ class RigidRegistrar:
                 # the estimate from the identity and the search disagree: the network also starts from the search's
                 # best candidate, and the estimate whose CBCT field of view matches the CT better goes on
                 t = time.perf_counter()
-                alt = self._run_from(fixed_img, moving_img, best.matrix, cascade_steps, weight_img, timings)
+                alt = self._run_from(fixed_img, moving_img, best.matrix, cascade_steps, weight_img, timings, bodies)
                 ref_grid = self.grid_spec.pooled(2).centered(Grid.from_sitk(moving_img).center())
                 s0 = _fov_similarity(fixed_img, moving_img, fov_img, run.total, ref_grid, self.hu_range)
                 s1 = _fov_similarity(fixed_img, moving_img, fov_img, alt.total, ref_grid, self.hu_range)
@@ -559,6 +574,7 @@ def register(
     global_init: bool | None = None,
     roi: RoiLike = None,
     match: str = "soft",
+    keep_couch: bool = False,
 ) -> RegistrationResult:
     """Rigidly register a CBCT (``moving``) to a planning CT (``fixed``).
 
@@ -578,7 +594,7 @@ def register(
             Gauss-Newton stage, search, multi-start or optimizer (``refine`` adds its optimizer, so keep it off for
             that). Also with ``model=`` a registrar built once. ``None`` (default): as the network is configured
             (the shipped bundle: on). ``details["fine_stage"]`` records what ran.
-        global_init: the global search for large offsets (translations over +-80 mm for seven rotation
+        global_init: the global search for large offsets (translations over +-72 mm for 19 rotation
             candidates, :mod:`monai_rigidreg.global_init`): the network also starts from the search's best candidate
             when it disagrees with the estimate from the identity, and the estimate whose CBCT field of view matches
             the CT better is kept (``details["start"]`` says which: ``"identity"`` or ``"search"``). ``None``
@@ -586,6 +602,10 @@ def register(
         roi: restrict the match to a region of the CT: a box ``(x0, y0, z0, x1, y1, z1)`` in CT LPS mm or a mask
             image (non-zero inside) on the CT's physical space (:mod:`monai_rigidreg.match_region`).
         match: ``"soft"`` (all tissue, default) or ``"bone"`` (the CT's bone and a few mm around it).
+        keep_couch: by default the couches (which do not move with the patient) are excluded from the match:
+            everything outside each image's body (:func:`~monai_rigidreg.body.coarse_body_mask`, 4 mm beyond the
+            skin; a CBCT's outside-of-field region is air, or give ``moving_fov``) counts as air for the network and
+            the global search. ``True`` keeps them.
 
     Returns:
         :class:`RegistrationResult` with ``params`` (mm/deg, fixed -> moving, about the fixed image centre),
@@ -607,7 +627,8 @@ def register(
             _DEFAULT_REGISTRARS[key] = RigidRegistrar.from_bundle(bundle, device=device)
         registrar = _DEFAULT_REGISTRARS[key]
     return registrar(fixed, moving, refine=refine, cascade_steps=cascade_steps, resample_moving=resample_moving,
-                     moving_fov=moving_fov, fine_stage=fine_stage, global_init=global_init, roi=roi, match=match)
+                     moving_fov=moving_fov, fine_stage=fine_stage, global_init=global_init, roi=roi, match=match,
+                     keep_couch=keep_couch)
 
 
 @contextlib.contextmanager

@@ -17,6 +17,7 @@ from monai_rigidreg.networks import (
     local_cost_volume,
     weighted_rigid_fit,
 )
+from monai_rigidreg.networks.correlation_net import _MatchLevel, parabola_shifts
 from monai_rigidreg.transforms import RandIsocenterCropd
 from monai_rigidreg.warp import warp_volume
 
@@ -54,6 +55,40 @@ def test_local_cost_volume_peaks_at_the_shift_with_its_sign():
     idx = int(cv[0, :, 3, 3, 3].argmax())
     assert (idx // 25 - 2, (idx // 5) % 5 - 2, idx % 5 - 2) == (-1, 2, 0)
     assert float(cv[0, idx, 3, 3, 3]) == pytest.approx(1.0, abs=1e-5)
+
+
+def test_parabola_shifts_find_a_subcell_peak_with_its_sign_per_axis():
+    # costs of a concave quadratic peaked at (0.3, -1.2, 0.45) cells in a +-2 window, three cells, two cases
+    r, k = 2, 5
+    grid = torch.arange(-r, r + 1, dtype=torch.float64)
+    dx, dy, dz = torch.meshgrid(grid, grid, grid, indexing="ij")
+    peaks = [(0.3, -1.2, 0.45), (-0.49, 0.0, 1.8), (2.0, -2.0, 0.1)]
+    costs = []
+    for px, py, pz in peaks:
+        costs.append(1.0 - 0.1 * ((dx - px) ** 2 + 0.5 * (dy - py) ** 2 + 2.0 * (dz - pz) ** 2))
+    cost = torch.stack(costs, -1).reshape(k**3, 3, 1, 1)[None].float()  # [1, K^3, 3, 1, 1]
+    shifts = parabola_shifts(cost.expand(2, -1, -1, -1, -1), r)
+    assert shifts.shape == (2, 3, 3) and shifts.dtype == torch.float64
+    # a parabola through three samples of a quadratic finds its vertex exactly; on the window's border the
+    # integer shift is kept (no neighbour beyond it)
+    assert shifts[0, 0].tolist() == pytest.approx([0.3, -1.2, 0.45], abs=1e-5)
+    assert shifts[1, 1].tolist() == pytest.approx([-0.49, 0.0, 2.0], abs=1e-5)  # z: best shift on the border
+    assert shifts[0, 2].tolist() == pytest.approx([2.0, -2.0, 0.1], abs=1e-5)
+    level = _MatchLevel(4, 4, radius=2, temperature=33.0, subcell="parabola")
+    assert level.subcell == "parabola"
+    with pytest.raises(ValueError, match="subcell"):
+        _MatchLevel(4, 4, radius=2, temperature=33.0, subcell="spline")
+
+
+def test_subcell_readout_switches_without_changing_weights():
+    torch.manual_seed(0)
+    a = CorrelationRigidNet(grid_size=(32, 32, 32), channels=(4, 8, 8), feat_channels=(8, 8))
+    b = CorrelationRigidNet(grid_size=(32, 32, 32), channels=(4, 8, 8), feat_channels=(8, 8), subcell="parabola")
+    b.load_state_dict(a.state_dict())  # no parameters of its own: the same checkpoint runs both ways
+    x = torch.rand(1, 2, 32, 32, 32)
+    la, lb = a.forward_levels(x[:, :1], x[:, 1:]), b.forward_levels(x[:, :1], x[:, 1:])
+    assert torch.allclose(la[0], lb[0])  # the coarse (global) level is the same
+    assert not torch.allclose(la[1], lb[1])  # the fine level reads the cost volume differently
 
 
 def test_cell_centres_are_the_stride_voxels_in_mm_about_the_grid_centre():

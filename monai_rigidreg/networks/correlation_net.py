@@ -36,7 +36,7 @@ from torch import nn
 from monai_rigidreg.geometry import Grid, matrix_to_params_torch
 from monai_rigidreg.warp import warp_volume
 
-__all__ = ["CorrelationRigidNet", "local_cost_volume", "weighted_rigid_fit"]
+__all__ = ["CorrelationRigidNet", "local_cost_volume", "parabola_shifts", "weighted_rigid_fit", "SUBCELL_MODES"]
 
 
 def local_cost_volume(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, radius: int) -> torch.Tensor:
@@ -122,15 +122,62 @@ def weighted_rigid_fit(points_fixed: torch.Tensor, points_moving: torch.Tensor, 
     return out
 
 
+SUBCELL_MODES = ("softargmax", "parabola")
+"""How a local level reads its match out of the cost volume: ``softargmax`` (the softmax-weighted mean shift,
+differentiable everywhere; what training uses) or ``parabola`` (the best integer shift plus, per axis, the vertex of
+the parabola through the costs at that shift and its two neighbours; weight-free, measured on held-out real CTs in
+the bundle docs: a sharp softmax snaps sub-cell residuals to whole cells)."""
+
+
+def parabola_shifts(cost: torch.Tensor, radius: int) -> torch.Tensor:
+    """Sub-cell match of a local cost volume: the best integer shift refined by a parabola per axis.
+
+    Args:
+        cost: ``[B, K**3, X, Y, Z]`` (:func:`local_cost_volume`; ``K = 2 * radius + 1``, row-major over
+            ``(dx, dy, dz)``).
+        radius: the search radius in cells.
+
+    Returns:
+        ``[B, N, 3]`` float64 shifts in cells (N = X*Y*Z): the argmax shift plus an offset in [-0.5, 0.5] per axis
+        (0 where the argmax is on the border of the search window or the costs are not concave there).
+    """
+    k = 2 * int(radius) + 1
+    b = cost.shape[0]
+    c = cost.flatten(2).transpose(1, 2).reshape(b, -1, k, k, k).to(torch.float64)  # [B, N, kx, ky, kz]
+    best = c.flatten(2).argmax(-1)  # [B, N]
+    index = torch.stack([best // (k * k), (best // k) % k, best % k], -1)  # [B, N, 3]
+    flat = c.flatten(2)
+    peak = flat.gather(2, best.unsqueeze(-1)).squeeze(-1)
+    strides = torch.tensor([k * k, k, 1], device=cost.device)
+    shifts = []
+    for axis in range(3):
+        i = index[..., axis]
+        inner = (i > 0) & (i < k - 1)
+        lo = (best - strides[axis] * inner.long()).unsqueeze(-1)  # the neighbours (the peak itself on the border)
+        hi = (best + strides[axis] * inner.long()).unsqueeze(-1)
+        cm, cp = flat.gather(2, lo).squeeze(-1), flat.gather(2, hi).squeeze(-1)
+        den = cm - 2.0 * peak + cp
+        concave = inner & (den < -1e-9)
+        offset = torch.where(concave, 0.5 * (cm - cp) / torch.where(concave, den, torch.ones_like(den)),
+                             torch.zeros_like(den)).clamp(-0.5, 0.5)
+        shifts.append(i.to(torch.float64) - radius + offset)
+    return torch.stack(shifts, -1)
+
+
 class _MatchLevel(nn.Module):
-    """One level: feature projection, cost volume, soft-argmax match, per-cell weight.
+    """One level: feature projection, cost volume, soft-argmax (or parabola) match, per-cell weight.
 
     ``radius=None``: global matching (every fixed cell against every moving cell; for the coarse level, whose cells
-    are few); otherwise the local cost volume within ``+-radius`` cells.
+    are few); otherwise the local cost volume within ``+-radius`` cells, read out by ``subcell``
+    (:data:`SUBCELL_MODES`).
     """
 
-    def __init__(self, in_channels: int, feat_channels: int, radius: int | None, temperature: float) -> None:
+    def __init__(self, in_channels: int, feat_channels: int, radius: int | None, temperature: float,
+                 subcell: str = "softargmax") -> None:
         super().__init__()
+        if subcell not in SUBCELL_MODES:
+            raise ValueError(f"subcell must be one of {SUBCELL_MODES}, got {subcell!r}")
+        self.subcell = subcell
         self.radius = None if radius is None else int(radius)
         self.project = nn.Conv3d(in_channels, feat_channels, kernel_size=1)
         self.weight_head = nn.Sequential(nn.Conv3d(in_channels, 16, kernel_size=1), nn.PReLU(),
@@ -158,7 +205,10 @@ class _MatchLevel(nn.Module):
         else:
             cost = local_cost_volume(pm, pf, self.radius)
             prob = torch.softmax(cost * scale, dim=1).flatten(2).transpose(1, 2)  # [B, N, K^3]
-            matched = cells + (prob.to(torch.float64) @ self.shifts.to(torch.float64)) * step
+            if self.subcell == "parabola":
+                matched = cells + parabola_shifts(cost, self.radius) * step
+            else:
+                matched = cells + (prob.to(torch.float64) @ self.shifts.to(torch.float64)) * step
         peak = prob.max(dim=-1).values  # sharpness of the match, in [1 / candidates, 1]
         learned = torch.sigmoid(self.weight_head(feat_fixed)).flatten(1)  # 0.5 at initialisation
         return matched, learned * peak
@@ -180,6 +230,8 @@ class CorrelationRigidNet(nn.Module):
             every cell against every cell (global search, the whole grid).
         temperature: initial softmax temperature on the cosine similarities.
         fine_passes: fine-level corrections after the coarse estimate (each re-warps the moving volume).
+        subcell: how the fine level reads its matches out of the cost volume (:data:`SUBCELL_MODES`; no weights:
+            a trained network can be run with either).
 
     Shapes:
         ``forward``: ``[B, 2 * C, x, y, z]`` (moving channels, then fixed) -> ``[B, 6]``.
@@ -199,6 +251,7 @@ class CorrelationRigidNet(nn.Module):
         radius: int = 2,
         temperature: float = 30.0,
         fine_passes: int = 1,
+        subcell: str = "softargmax",
     ) -> None:
         super().__init__()
         if len(channels) < 3:
@@ -218,7 +271,7 @@ class CorrelationRigidNet(nn.Module):
             c_in = int(c)
         self.stages = nn.ModuleList(stages)
         self.coarse = _MatchLevel(int(channels[-1]), int(feat_channels[0]), None, temperature)
-        self.fine = _MatchLevel(int(channels[-2]), int(feat_channels[1]), int(radius), temperature)
+        self.fine = _MatchLevel(int(channels[-2]), int(feat_channels[1]), int(radius), temperature, subcell)
         self.grid = Grid.centered(self.grid_size, self.grid_spacing)
         n = len(channels)
         self.register_buffer("cells_coarse", self._cell_centres(2**n), persistent=False)
