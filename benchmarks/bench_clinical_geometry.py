@@ -75,7 +75,6 @@ import os
 import platform
 import shlex
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -84,6 +83,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_common import LoadMonitor, Tee, ct_name, find_cts  # noqa: E402
 
 HELD_OUT_CTS = ("thorax_4dct_phase00_itkelastix.nii.gz", "head_tigre_ct.nii.gz")
 TRAINING_CTS = ("abdomen_pelvis_totalsegmentator_example_ct.nii.gz",)
@@ -93,68 +94,6 @@ DEFAULT_METHODS = ("network", "elastix", "sitk")
 GROUPS = ("small", "large", "deformed")
 SUCCESS_MM = 2.0
 AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
-
-
-class Tee:
-    """Print and keep every line, for ``--results``."""
-
-    def __init__(self) -> None:
-        self.lines: list[str] = []
-
-    def __call__(self, text: str = "") -> None:
-        print(text, flush=True)
-        self.lines.append(text)
-
-
-class LoadMonitor(threading.Thread):
-    """Samples the 1-minute load average every ``period`` seconds while the benchmark runs."""
-
-    def __init__(self, period: float = 10.0) -> None:
-        super().__init__(daemon=True)
-        self.period = period
-        self.samples: list[float] = [os.getloadavg()[0]]
-        self._stop_event = threading.Event()
-
-    def run(self) -> None:
-        while not self._stop_event.wait(self.period):
-            self.samples.append(os.getloadavg()[0])
-
-    def stop(self) -> None:
-        self._stop_event.set()
-        self.samples.append(os.getloadavg()[0])
-
-    def describe(self) -> str:
-        s = np.asarray(self.samples)
-        return f"min {s.min():.2f}, mean {s.mean():.2f}, max {s.max():.2f} over {len(s)} samples"
-
-
-def ct_name(path: Path) -> str:
-    name = path.name
-    for suffix in (".nii.gz", ".nii", ".mha", ".mhd", ".nrrd"):
-        if name.endswith(suffix):
-            return name[: -len(suffix)]
-    return name
-
-
-def find_cts(requested: list[str] | None, out: Tee) -> list[Path]:
-    """The CTs to use (paths, or names of files in the data folder); absent ones are skipped with the reason."""
-    from monai_rigidreg.data import shared_data_dir
-
-    dirs = [d for d in (shared_data_dir(), REPO.parent / "shared" / "data", Path("../shared/data")) if d is not None]
-    found = []
-    for r in requested or DEFAULT_CTS:
-        p = Path(r).expanduser()
-        if p.exists():
-            found.append(p.resolve())
-            continue
-        names = [r] if r.endswith((".nii.gz", ".nii", ".mha", ".nrrd")) else [r, f"{r}.nii.gz"]
-        hit = next((d / n for n in names for d in dirs if (d / n).is_file()), None)
-        if hit is None:
-            where = ", ".join(str(d) for d in dict.fromkeys(dirs)) or "no data folder ($MONAI_RIGIDREG_DATA unset)"
-            out(f"skipped {r}: not found in {where}")
-        else:
-            found.append(hit.resolve())
-    return found
 
 
 def is_training_ct(name: str) -> bool:
@@ -474,6 +413,10 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=2, help="torch, SimpleITK and ITK/elastix threads (default 2)")
     ap.add_argument("--bundle", type=Path, default=None, help="bundle directory (default: the shipped bundle)")
     ap.add_argument("--simulate-only", action="store_true", help="build (or resume) the pairs, register nothing")
+    ap.add_argument("--native-level", action="store_true",
+                    help="the network with its last level at native resolution (RigidRegistrar native_level)")
+    ap.add_argument("--no-global-init", action="store_true",
+                    help="the network without the global search (RigidRegistrar global_init)")
     args = ap.parse_args()
     if args.cases_per_group < 1 or args.threads < 1:
         ap.error("--cases-per-group and --threads must be >= 1")
@@ -528,11 +471,14 @@ def main() -> int:
         out(f"group {g}: {CLINICAL_GROUPS[g].describe()}")
     out()
 
-    cts = find_cts(args.cts, out)
+    cts = find_cts(args.cts, out, DEFAULT_CTS)
     if not cts:
         out("no CT to benchmark")
         return 2
     registrar = RigidRegistrar.from_bundle(args.bundle, device=args.device) if "network" in methods else None
+    if registrar is not None:
+        registrar.native_level = args.native_level
+        registrar.global_init = not args.no_global_init
     all_rows: list[dict[str, Any]] = []
     run_notes: list[str] = []
     for path in cts:

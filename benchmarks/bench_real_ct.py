@@ -38,7 +38,6 @@ import shlex
 import shutil
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -46,6 +45,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_common import LoadMonitor, Tee, ct_name, find_cts  # noqa: E402
 
 DEFAULT_CTS = ("thorax_4dct_phase00_itkelastix.nii.gz", "head_tigre_ct.nii.gz")
 DEFAULT_METHODS = ("network-regression", "network", "elastix")
@@ -59,72 +60,6 @@ SIM_SETTINGS = (
     "photons=3e4", "scatter_to_primary=0.5", "beam_hardening=0.02",
 )
 AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
-
-
-class Tee:
-    """Print and keep every line, for ``--results``."""
-
-    def __init__(self) -> None:
-        self.lines: list[str] = []
-
-    def __call__(self, text: str = "") -> None:
-        print(text, flush=True)
-        self.lines.append(text)
-
-
-class LoadMonitor(threading.Thread):
-    """Samples the 1-minute load average every ``period`` seconds while the benchmark runs."""
-
-    def __init__(self, period: float = 10.0) -> None:
-        super().__init__(daemon=True)
-        self.period = period
-        self.samples: list[float] = [os.getloadavg()[0]]
-        self._stop_event = threading.Event()
-
-    def run(self) -> None:
-        while not self._stop_event.wait(self.period):
-            self.samples.append(os.getloadavg()[0])
-
-    def stop(self) -> None:
-        self._stop_event.set()
-        self.samples.append(os.getloadavg()[0])
-
-    def describe(self) -> str:
-        s = np.asarray(self.samples)
-        return f"min {s.min():.2f}, mean {s.mean():.2f}, max {s.max():.2f} over {len(s)} samples"
-
-
-def ct_name(path: Path) -> str:
-    name = path.name
-    for suffix in (".nii.gz", ".nii", ".mha", ".mhd", ".nrrd"):
-        if name.endswith(suffix):
-            return name[: -len(suffix)]
-    return name
-
-
-def find_cts(requested: list[str] | None, out: Tee) -> list[Path]:
-    """The CTs to use; absent ones are skipped with the reason printed."""
-    if requested:
-        found = []
-        for r in requested:
-            p = Path(r).expanduser()
-            if p.exists():
-                found.append(p)
-            else:
-                out(f"skipped {r}: no such file or folder")
-        return found
-    from monai_rigidreg.data import shared_data_dir
-
-    dirs = [d for d in (shared_data_dir(), REPO.parent / "shared" / "data", Path("../shared/data")) if d is not None]
-    found = []
-    for name in DEFAULT_CTS:
-        hit = next((d / name for d in dirs if (d / name).is_file()), None)
-        if hit is None:
-            where = ", ".join(str(d) for d in dict.fromkeys(dirs)) or "no data folder ($MONAI_RIGIDREG_DATA unset)"
-            out(f"skipped {name}: not found in {where}")
-        else:
-            found.append(hit.resolve())
-    return found
 
 
 def simulate_command(ct: Path, out_dir: Path, num_cases: int, seed: int, display: bool = False) -> list[str]:
@@ -231,6 +166,8 @@ def main() -> int:
                     help="bundle directory of the network methods (default: the shipped bundle)")
     ap.add_argument("--fine-passes", type=int, default=None,
                     help="fine passes of a CorrelationRigidNet at inference (default: the bundle's)")
+    ap.add_argument("--subcell", choices=("softargmax", "parabola"), default=None,
+                    help="how a CorrelationRigidNet's fine level reads its matches (default: the bundle's)")
     ap.add_argument("--results", type=Path, default=None, help="also write the printed text to FILE")
     args = ap.parse_args()
     if args.num_cases < 1 or args.threads < 1:
@@ -272,7 +209,8 @@ def main() -> int:
         f"machine: {platform.node()} {platform.machine()}, {os.cpu_count()} CPU cores; threads {args.threads}; "
         f"torch {torch.__version__}, SimpleITK {sitk.Version.VersionString()}; device {args.device}",
         f"bundle: {args.bundle or 'the shipped bundle'}"
-        + (f"; fine passes {args.fine_passes}" if args.fine_passes is not None else ""),
+        + (f"; fine passes {args.fine_passes}" if args.fine_passes is not None else "")
+        + (f"; subcell {args.subcell}" if args.subcell is not None else ""),
         f"load average at start (1/5/15 min): {' '.join(f'{v:.2f}' for v in os.getloadavg())}",
     ]
     for line in head:
@@ -281,7 +219,7 @@ def main() -> int:
         f"settings: {' '.join(SIM_SETTINGS)}")
     out()
 
-    cts = find_cts(args.ct, out)
+    cts = find_cts(args.ct, out, DEFAULT_CTS)
     if not cts:
         out("no CT to benchmark")
         return 2
@@ -292,6 +230,11 @@ def main() -> int:
         if not hasattr(regression, "fine_passes"):
             ap.error("--fine-passes needs a bundle whose regression is a CorrelationRigidNet")
         regression.fine_passes = int(args.fine_passes)
+    if registrar is not None and args.subcell is not None:
+        fine = getattr(getattr(registrar.network, "regression", None), "fine", None)
+        if not hasattr(fine, "subcell"):
+            ap.error("--subcell needs a bundle whose regression is a CorrelationRigidNet")
+        fine.subcell = args.subcell
     all_rows: list[dict] = []
     per_ct: list[tuple[str, list[dict]]] = []
     timing: list[str] = []

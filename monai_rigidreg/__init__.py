@@ -14,7 +14,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-__version__ = "0.3.0"
+__version__ = "0.4.0"
 
 from monai_rigidreg.geometry import (  # noqa: E402
     PARAM_NAMES,

@@ -59,6 +59,7 @@ __all__ = [
     "couch_mask",
     "exclude_outside_body",
     "coarse_body_mask",
+    "without_couch",
 ]
 
 logger = logging.getLogger(__name__)
@@ -337,3 +338,11 @@ def coarse_body_mask(
         logger.warning("empty body mask: the couch is not excluded")
         return None
     return mask
+
+
+def without_couch(volume: torch.Tensor, body: torch.Tensor, hu_range: tuple[float, float]) -> torch.Tensor:
+    """``volume`` (normalized HU) with its tissue-like voxels (above :data:`BODY_THRESHOLD_HU`)
+    outside ``body`` (a mask sampled on the same grid) set to air. Only tissue-like voxels: a CBCT's lung cut by its
+    field of view lies outside its body mask (not a hole there) but keeps its parenchyma; its vessels are lost."""
+    level = (BODY_THRESHOLD_HU - hu_range[0]) / (hu_range[1] - hu_range[0])
+    return torch.where((body < 0.5) & (volume > level), torch.zeros_like(volume), volume)

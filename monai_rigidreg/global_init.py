@@ -29,12 +29,13 @@ import numpy as np
 import SimpleITK as sitk
 import torch
 
-from monai_rigidreg.confidence import cylindrical_fov_mask
-from monai_rigidreg.geometry import Grid, params_to_matrix, transform_points
+from monai_rigidreg.body import BODY_THRESHOLD_HU
+from monai_rigidreg.confidence import cylindrical_fov_mask, fov_ncc
+from monai_rigidreg.geometry import Grid, invert_matrix, params_to_matrix, transform_points
 from monai_rigidreg.transforms.grid import antialias_for_grid, crop_to_grid, resample_to_grid
 
 __all__ = ["SearchCandidate", "global_search", "masked_ncc_map", "volume_spectra", "DEFAULT_ROTATIONS_DEG",
-           "matrix_distance_mm"]
+           "matrix_distance_mm", "fov_similarity", "SEARCH_AGREE_MM"]
 
 def _rotation_candidates(step: float = 25.0) -> tuple[tuple[float, float, float], ...]:
     """The identity, +-``step`` about each axis, and +-``step`` about each pair of axes (19 candidates)."""
@@ -191,7 +192,8 @@ def global_search(
         rotations_deg: rotation candidates ``(rx, ry, rz)`` about the CBCT centre, degrees.
         hu_range: intensities are clipped to this window first.
         fixed_body, moving_body: optional body masks (any grid on the image's physical space, e.g.
-            :func:`~monai_rigidreg.body.coarse_body_mask`): outside them the image counts as air (the couches).
+            :func:`~monai_rigidreg.body.coarse_body_mask`): tissue-like voxels outside them count as air (the
+            couches).
 
     Returns:
         one :class:`SearchCandidate` per rotation, best score first.
@@ -213,10 +215,11 @@ def global_search(
     a, b = hu_range
     volume = resample_to_grid(ct.clamp(a, b), ct_grid, s_grid, "bilinear", "zeros", a)[0]
     volume = (volume - a) / (b - a)  # intensities of order 1: float32 FFTs stay accurate
+    level = (BODY_THRESHOLD_HU - a) / (b - a)  # tissue-like voxels outside a body (couches) become air
     if fixed_body is not None:
         body, body_grid = _image_tensor(fixed_body)
         inside = resample_to_grid(body, body_grid, s_grid, "bilinear", "zeros", 0.0, antialias=False)[0] > 0.5
-        volume = torch.where(inside, volume, torch.zeros_like(volume))
+        volume = torch.where(inside | (volume <= level), volume, torch.zeros_like(volume))
     cb_body = None
     if moving_body is not None:
         cb_body = _image_tensor(moving_body)
@@ -235,7 +238,7 @@ def global_search(
         if cb_body is not None:
             inside = resample_to_grid(cb_body[0], cb_body[1], t_grid, "bilinear", "zeros", 0.0, antialias=False,
                                       matrix=r_matrix)[0] > 0.5
-            template = torch.where(inside, template, torch.zeros_like(template))
+            template = torch.where(inside | (template <= level), template, torch.zeros_like(template))
         mask = resample_to_grid(fov, fov_grid, t_grid, "nearest", "zeros", 0.0, antialias=False,
                                 matrix=r_matrix)[0]
         ncc = masked_ncc_map(volume, template, mask, fft_dtype=torch.float32, spectra=spectra)
@@ -252,3 +255,36 @@ def global_search(
 def matrix_distance_mm(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:
     """Mean distance (mm) between ``points`` mapped by the 4x4 matrices ``a`` and ``b``."""
     return float(np.linalg.norm(transform_points(a, points) - transform_points(b, points), axis=1).mean())
+
+
+def fov_similarity(fixed: sitk.Image, moving: sitk.Image, fov: sitk.Image, matrix: np.ndarray, grid: Grid,
+                    hu_range: tuple[float, float]) -> float:
+    """NCC of the CBCT and the CT mapped into it by ``matrix`` (fixed -> moving), over the CBCT field of view on
+    ``grid`` (a grid in the CBCT frame, so every estimate is scored on the same CBCT voxels)."""
+    def on(image: sitk.Image, m: np.ndarray | None, mode: str, pad: float) -> torch.Tensor:
+        if image.GetPixelID() != sitk.sitkFloat32:
+            image = sitk.Cast(image, sitk.sitkFloat32)
+        raw = torch.from_numpy(sitk.GetArrayFromImage(image)).permute(2, 1, 0)[None]
+        return resample_to_grid(raw, Grid.from_sitk(image), grid, mode, "zeros", pad, antialias=mode == "bilinear",
+                                matrix=m)[0]
+
+    a, b = hu_range
+    to_fixed = invert_matrix(matrix)
+    cb = on(moving, None, "bilinear", a).clamp(a, b)
+    ct = on(fixed, to_fixed, "bilinear", a).clamp(a, b)
+    # only where the CT has data: the grid points mapped into the CT's index space
+    idx = transform_points(np.linalg.inv(Grid.from_sitk(fixed).index_to_physical()) @ to_fixed,
+                           transform_points(grid.index_to_physical(), grid_indices(grid)))
+    inside = np.all((idx >= 0) & (idx <= np.asarray(fixed.GetSize()) - 1), axis=1).reshape(grid.size)
+    mask = (on(fov, None, "nearest", 0.0) > 0) & torch.from_numpy(inside)
+    return fov_ncc(cb, ct, mask.to(torch.float32))
+
+
+def grid_indices(grid: Grid) -> np.ndarray:
+    """``[N, 3]`` voxel indices of ``grid`` in row-major ``(x, y, z)`` order (the order of ``grid.size``)."""
+    return np.stack(np.meshgrid(*[np.arange(n, dtype=np.float64) for n in grid.size], indexing="ij"), -1).reshape(-1, 3)
+
+
+SEARCH_AGREE_MM = 10.0
+"""The network's estimate from the identity and the global search's best candidate agree when the mean distance
+between the network-grid points they map is below this: the second start is then skipped."""

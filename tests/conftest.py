@@ -145,3 +145,17 @@ def resampled_with_truth(fixed, moving, fov, transform):
     mask = (on_fixed(fov, transform, sitk.sitkNearestNeighbor, 0) > 0) & (
         on_fixed(fov, sitk.Transform(), sitk.sitkNearestNeighbor, 0) > 0)
     return sitk.GetArrayFromImage(fixed), reg, raw, mask
+
+
+def synth_ct(grid, seed: int, radius_mm: float | None = None) -> sitk.Image:
+    """A synthetic-anatomy CT (HU, float32) on ``grid`` (:mod:`monai_rigidreg.simulation.synth`)."""
+    from monai_rigidreg.simulation.synth import synth_hu_volume, synth_label_map
+
+    labels = synth_label_map(grid, seed, radius_mm=radius_mm)
+    hu = synth_hu_volume(labels, seed, grid, radius_mm=radius_mm).numpy()
+    img = sitk.GetImageFromArray(np.ascontiguousarray(hu.transpose(2, 1, 0)).astype(np.float32))
+    img.SetSpacing(grid.spacing)
+    img.SetOrigin(grid.origin)
+    img.SetDirection(grid.direction)
+    return img
+

@@ -7,32 +7,22 @@ import numpy as np
 import pytest
 import SimpleITK as sitk
 import torch
+from conftest import synth_ct
 
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import Grid, matrix_to_sitk, params_to_matrix, recenter_params, target_registration_error
 from monai_rigidreg.global_init import global_search, masked_ncc_map, matrix_distance_mm
 from monai_rigidreg.match_region import match_weight, parse_roi
 from monai_rigidreg.registration import RigidRegistrar
-from monai_rigidreg.simulation.synth import synth_hu_volume, synth_label_map
 
 ISO = np.array([20.0, -10.0, 15.0])
 """The CBCT isocentre, mm from the CT centre (the origin)."""
 
 
-def _image(array_xyz: np.ndarray, grid: Grid) -> sitk.Image:
-    img = sitk.GetImageFromArray(np.ascontiguousarray(array_xyz.transpose(2, 1, 0)).astype(np.float32))
-    img.SetSpacing(grid.spacing)
-    img.SetOrigin(grid.origin)
-    img.SetDirection(grid.direction)
-    return img
-
-
 @pytest.fixture(scope="module")
 def ct() -> sitk.Image:
     """A synthetic-anatomy CT (HU), 96^3 at 3 mm (288 mm) centred on the origin."""
-    grid = Grid.centered((96, 96, 96), (3.0, 3.0, 3.0))
-    labels = synth_label_map(grid, 11)
-    return _image(synth_hu_volume(labels, 11, grid).numpy(), grid)
+    return synth_ct(Grid.centered((96, 96, 96), (3.0, 3.0, 3.0)), 11)
 
 
 def _cbct(ct: sitk.Image, matrix: np.ndarray, seed: int = 0) -> sitk.Image:
@@ -189,9 +179,7 @@ def test_a_couch_that_did_not_move_is_excluded_by_default(registrar):
     ignores it; kept (``keep_couch=True``) it pulls the estimate towards no motion."""
     from monai_rigidreg.simulation.couch import add_couch, place_couch
 
-    grid = Grid.centered((80, 80, 80), (3.0, 3.0, 3.0))
-    labels = synth_label_map(grid, 5, radius_mm=62.0)
-    ct = _image(synth_hu_volume(labels, 5, grid, radius_mm=62.0).numpy(), grid)
+    ct = synth_ct(Grid.centered((80, 80, 80), (3.0, 3.0, 3.0)), 5, radius_mm=62.0)
     iso = np.array([0.0, 25.0, 0.0])  # the CBCT's 128 mm cube holds the patient's back and the couch
     truth = [5.0, -4.0, 3.0, 3.0, 0.0, 3.0]
     cb_grid = Grid.centered((64, 64, 64), (2.0, 2.0, 2.0), iso)

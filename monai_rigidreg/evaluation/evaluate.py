@@ -220,7 +220,8 @@ def _run_method(method: str, fixed: sitk.Image, moving: sitk.Image, fov: sitk.Im
     if method.startswith("network"):
         res = registrar(fixed, moving, refine=method == "network+refine", resample_moving=False, moving_fov=fov,
                         assess=True, fine_stage=False if method == "network-regression" else None)
-        extra = {"confidence": res.confidence, "flagged": res.flagged, "start": res.details.get("start"),
+        extra = {"confidence": res.confidence, "flagged": res.flagged,
+                 "start": getattr(res, "details", {}).get("start"),
                  "timings": {k: round(v, 4) for k, v in res.timings.items()}}
         return res.params, time.perf_counter() - t0, extra
     if method == "sitk":

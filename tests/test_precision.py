@@ -1,0 +1,59 @@
+"""The last level at native resolution: its grid, and a residual of a few mm / degrees removed to a fraction of a mm."""
+
+from __future__ import annotations
+
+import numpy as np
+import SimpleITK as sitk
+from conftest import synth_ct
+
+from monai_rigidreg.confidence import cylindrical_fov_mask
+from monai_rigidreg.geometry import Grid, matrix_to_sitk, params_to_matrix, transform_points
+from monai_rigidreg.precision import native_grid, refine_native
+
+
+def _pair(truth_iso, iso, cb_size=(96, 96, 60), cb_spacing=1.5, seed=21):
+    grid = Grid.centered((90, 90, 90), (2.5, 2.5, 2.5))
+    ct = synth_ct(grid, seed)
+    truth = params_to_matrix(truth_iso, iso)
+    cb_grid = Grid.centered(cb_size, (cb_spacing,) * 3, iso)
+    cbct = sitk.Resample(ct, cb_grid.to_sitk(), matrix_to_sitk(np.linalg.inv(truth)), sitk.sitkLinear, -1000.0)
+    arr = sitk.GetArrayFromImage(cbct) + 25.0 * np.random.default_rng(seed).standard_normal(cb_size[::-1])
+    noisy = sitk.GetImageFromArray(arr.astype(np.float32))
+    noisy.CopyInformation(cbct)
+    return ct, noisy, truth
+
+
+def _mean_distance(a, b, pts):
+    return float(np.linalg.norm(transform_points(a, pts) - transform_points(b, pts), axis=1).mean())
+
+
+def test_native_grid_covers_the_cbct_at_the_finer_spacing_within_the_voxel_budget():
+    iso = np.array([10.0, -20.0, 5.0])
+    ct, cbct, truth = _pair([0, 0, 0, 0, 0, 0], iso)
+    g = native_grid(ct, cbct, truth)
+    assert g.spacing == (1.5, 1.5, 1.5)  # the CBCT's, finer than the CT's 2.5 mm
+    assert g.size == (96, 96, 60)  # its extent (144 x 144 x 90 mm)
+    np.testing.assert_allclose(g.center(), iso, atol=1e-9)  # T^-1 of the CBCT centre (identity here)
+    moved = params_to_matrix([20.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(native_grid(ct, cbct, moved).center(), iso - [20.0, 0.0, 0.0], atol=1e-9)
+    small = native_grid(ct, cbct, truth, max_voxels=100_000)
+    assert small.spacing[0] > 1.5 and np.prod(small.size) <= 100_000
+
+
+def test_refine_native_removes_a_residual_of_a_few_mm_and_degrees():
+    iso = np.array([10.0, -20.0, 5.0])
+    truth_iso = [6.0, -3.0, 4.0, 4.0, -3.0, 5.0]
+    ct, cbct, truth = _pair(truth_iso, iso)
+    start = truth @ params_to_matrix([1.5, -1.0, 1.2, 1.0, -0.8, 1.2], iso)  # the network's residual error
+    box = np.stack(np.meshgrid(*[np.linspace(-50, 50, 5)] * 3, indexing="ij"), -1).reshape(-1, 3) + iso
+    before = _mean_distance(start, truth, box)
+    refined, grid = refine_native(ct, cbct, start, cylindrical_fov_mask(cbct))
+    after = _mean_distance(refined, truth, box)
+    assert before > 2.0
+    assert after < 0.2, (before, after)
+    assert grid.spacing == (1.5, 1.5, 1.5)
+    # at the truth it stays there; with the window clipped at air (-1000 HU) the CBCT's noisy air biases the pose
+    stay, _ = refine_native(ct, cbct, truth, cylindrical_fov_mask(cbct))
+    assert _mean_distance(stay, truth, box) < 0.1
+    clipped, _ = refine_native(ct, cbct, truth, cylindrical_fov_mask(cbct), hu_range=(-1000.0, 2000.0))
+    assert _mean_distance(clipped, truth, box) > 0.2
