@@ -413,8 +413,8 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=2, help="torch, SimpleITK and ITK/elastix threads (default 2)")
     ap.add_argument("--bundle", type=Path, default=None, help="bundle directory (default: the shipped bundle)")
     ap.add_argument("--simulate-only", action="store_true", help="build (or resume) the pairs, register nothing")
-    ap.add_argument("--native-level", action="store_true",
-                    help="the network with its last level at native resolution (RigidRegistrar native_level)")
+    ap.add_argument("--no-native-level", action="store_true",
+                    help="the network without its last level at native resolution (RigidRegistrar native_level)")
     ap.add_argument("--no-global-init", action="store_true",
                     help="the network without the global search (RigidRegistrar global_init)")
     args = ap.parse_args()
@@ -477,7 +477,7 @@ def main() -> int:
         return 2
     registrar = RigidRegistrar.from_bundle(args.bundle, device=args.device) if "network" in methods else None
     if registrar is not None:
-        registrar.native_level = args.native_level
+        registrar.native_level = not args.no_native_level
         registrar.global_init = not args.no_global_init
     all_rows: list[dict[str, Any]] = []
     run_notes: list[str] = []

@@ -55,9 +55,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "physical space (non-zero inside)")
     p.add_argument("--match", choices=("soft", "bone"), default="soft",
                    help="soft: all tissue (default); bone: the CT's bone and a few mm around it")
-    p.add_argument("--native-level", action="store_true",
-                   help="end with Gauss-Newton steps over the whole CBCT field of view at the inputs' resolution "
-                   "(off by default: measured less precise on the held-out paper-protocol pairs; see the README)")
+    p.add_argument("--no-native-level", action="store_true",
+                   help="skip the last Gauss-Newton steps over the whole CBCT field of view at the inputs' resolution "
+                   "(on by default; see the README for what it changes)")
     p.add_argument("--keep-couch", action="store_true",
                    help="keep the couches in the match (by default everything outside each image's body, the CT's "
                    "and the treatment couch, counts as air: they do not move with the patient)")
@@ -85,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     check_register_inputs(args.fixed, args.moving, args.output_dir, args.overwrite, args.cascade_steps)
     _match_options(args)
     registrar = RigidRegistrar.from_bundle(args.bundle, device=args.device)
-    registrar.native_level = registrar.native_level or args.native_level
+    registrar.native_level = registrar.native_level and not args.no_native_level
     paths = register_files(registrar, args.fixed, args.moving, args.output_dir, refine=args.refine,
                            overwrite=args.overwrite, qc=not args.no_qc, cascade_steps=args.cascade_steps,
                            fixed_series_uid=args.fixed_series_uid, moving_series_uid=args.moving_series_uid,
@@ -124,7 +124,7 @@ def _run_batch(args: argparse.Namespace, registrar_cls: Any, evaluator_cls: Any,
     pairs = pairs_fn(datalist=args.datalist, dataset_dir=args.datalist.parent)
     check_output_dir(args.output_dir, args.overwrite, allow_existing=True)
     registrar = registrar_cls.from_bundle(args.bundle, device=args.device)
-    registrar.native_level = registrar.native_level or args.native_level
+    registrar.native_level = registrar.native_level and not args.no_native_level
     evaluator = evaluator_cls(registrar, pairs, args.output_dir, refine=args.refine, overwrite=args.overwrite,
                               qc=not args.no_qc, fine_stage=False if args.no_fine_stage else None,
                               isocenter=args.isocenter, reg=args.reg, transform_format=args.transform_format,
