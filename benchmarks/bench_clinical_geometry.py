@@ -84,7 +84,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_common import LoadMonitor, Tee, ct_name, find_cts  # noqa: E402
+from bench_common import LoadMonitor, Tee, ct_name, find_cts, set_threads  # noqa: E402
 
 HELD_OUT_CTS = ("thorax_4dct_phase00_itkelastix.nii.gz", "head_tigre_ct.nii.gz")
 TRAINING_CTS = ("abdomen_pelvis_totalsegmentator_example_ct.nii.gz",)
@@ -421,13 +421,10 @@ def main() -> int:
     if args.cases_per_group < 1 or args.threads < 1:
         ap.error("--cases-per-group and --threads must be >= 1")
 
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"):
-        os.environ[var] = str(args.threads)
+    set_threads(args.threads)  # before the libraries start their pools
     import SimpleITK as sitk
     import torch
 
-    torch.set_num_threads(args.threads)
-    sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(args.threads)
     import monai_rigidreg
     from monai_rigidreg.classical import elastix_available
     from monai_rigidreg.registration import RigidRegistrar

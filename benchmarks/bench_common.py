@@ -72,3 +72,16 @@ def find_cts(requested: list[str] | None, out: Tee, defaults: tuple[str, ...]) -
         else:
             found.append(hit.resolve())
     return found
+
+
+def set_threads(threads: int) -> None:
+    """torch, SimpleITK and ITK thread counts (and the OpenMP/MKL environment) before the libraries start their
+    pools: benchmarks compare methods at the same number of threads."""
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"):
+        os.environ[var] = str(threads)
+    import SimpleITK as sitk
+    import torch
+
+    torch.set_num_threads(threads)
+    sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(threads)
+

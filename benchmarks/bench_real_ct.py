@@ -46,7 +46,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_common import LoadMonitor, Tee, ct_name, find_cts  # noqa: E402
+from bench_common import LoadMonitor, Tee, ct_name, find_cts, set_threads  # noqa: E402
 
 DEFAULT_CTS = ("thorax_4dct_phase00_itkelastix.nii.gz", "head_tigre_ct.nii.gz")
 DEFAULT_METHODS = ("network-regression", "network", "elastix")
@@ -173,14 +173,10 @@ def main() -> int:
     if args.num_cases < 1 or args.threads < 1:
         ap.error("--num-cases and --threads must be >= 1")
 
-    # thread counts before the libraries start their pools
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"):
-        os.environ[var] = str(args.threads)
+    set_threads(args.threads)  # before the libraries start their pools
     import SimpleITK as sitk
     import torch
 
-    torch.set_num_threads(args.threads)
-    sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(args.threads)
     from monai_rigidreg.classical import elastix_available
     from monai_rigidreg.evaluation import evaluate_datalist
     from monai_rigidreg.evaluation.evaluate import METHODS, load_datalist
