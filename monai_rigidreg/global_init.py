@@ -29,10 +29,10 @@ import numpy as np
 import SimpleITK as sitk
 import torch
 
-from monai_rigidreg.body import BODY_THRESHOLD_HU
+from monai_rigidreg.body import without_couch
 from monai_rigidreg.confidence import cylindrical_fov_mask, fov_ncc
-from monai_rigidreg.geometry import Grid, invert_matrix, params_to_matrix, transform_points
-from monai_rigidreg.transforms.grid import antialias_for_grid, crop_to_grid, resample_to_grid
+from monai_rigidreg.geometry import Grid, grid_points, invert_matrix, params_to_matrix, transform_points
+from monai_rigidreg.transforms.grid import antialias_for_grid, crop_to_grid, resample_to_grid, sitk_on_grid, sitk_tensor
 
 __all__ = ["SearchCandidate", "global_search", "masked_ncc_map", "volume_spectra", "DEFAULT_ROTATIONS_DEG",
            "matrix_distance_mm", "fov_similarity", "SEARCH_AGREE_MM"]
@@ -160,13 +160,6 @@ def _subvoxel_peak(ncc: torch.Tensor) -> tuple[np.ndarray, float]:
     return sub, peak
 
 
-def _image_tensor(image: sitk.Image) -> tuple[torch.Tensor, Grid]:
-    """``[1, x, y, z]`` float32 view of a SimpleITK image and its grid."""
-    if image.GetPixelID() != sitk.sitkFloat32:
-        image = sitk.Cast(image, sitk.sitkFloat32)
-    return torch.from_numpy(sitk.GetArrayFromImage(image)).permute(2, 1, 0)[None], Grid.from_sitk(image)
-
-
 def global_search(
     fixed: sitk.Image,
     moving: sitk.Image,
@@ -177,7 +170,6 @@ def global_search(
     rotations_deg: Sequence[Sequence[float]] = DEFAULT_ROTATIONS_DEG,
     hu_range: tuple[float, float] = (-1000.0, 2000.0),
     fixed_body: sitk.Image | None = None,
-    moving_body: sitk.Image | None = None,
 ) -> list[SearchCandidate]:
     """Best translation for each rotation candidate, by masked NCC over all shifts (see the module doc).
 
@@ -191,19 +183,18 @@ def global_search(
         template_extent_mm: the template covers at most this cube of the CBCT around its centre.
         rotations_deg: rotation candidates ``(rx, ry, rz)`` about the CBCT centre, degrees.
         hu_range: intensities are clipped to this window first.
-        fixed_body, moving_body: optional body masks (any grid on the image's physical space, e.g.
-            :func:`~monai_rigidreg.body.coarse_body_mask`): tissue-like voxels outside them count as air (the
-            couches).
+        fixed_body: optional body mask of the CT (any grid on its physical space, e.g.
+            :func:`~monai_rigidreg.body.coarse_body_mask`): tissue-like voxels outside it (the couch) count as air.
 
     Returns:
         one :class:`SearchCandidate` per rotation, best score first.
     """
-    ct, ct_grid = _image_tensor(fixed)
-    cb, cb_grid = _image_tensor(moving)
+    ct, ct_grid = sitk_tensor(fixed)
+    cb, cb_grid = sitk_tensor(moving)
     if moving_fov is None:  # the registration's default: the inscribed cylinder (not "above air": a mask of the
         # tissue alone lets the template slide over the body by several mm)
         moving_fov = cylindrical_fov_mask(moving)
-    fov, fov_grid = _image_tensor(moving_fov)
+    fov, fov_grid = sitk_tensor(moving_fov)
     center = cb_grid.center()
     lo, hi = cb_grid.physical_extent()
     extent = np.minimum(np.asarray(hi) - np.asarray(lo), template_extent_mm)
@@ -215,14 +206,9 @@ def global_search(
     a, b = hu_range
     volume = resample_to_grid(ct.clamp(a, b), ct_grid, s_grid, "bilinear", "zeros", a)[0]
     volume = (volume - a) / (b - a)  # intensities of order 1: float32 FFTs stay accurate
-    level = (BODY_THRESHOLD_HU - a) / (b - a)  # tissue-like voxels outside a body (couches) become air
-    if fixed_body is not None:
-        body, body_grid = _image_tensor(fixed_body)
-        inside = resample_to_grid(body, body_grid, s_grid, "bilinear", "zeros", 0.0, antialias=False)[0] > 0.5
-        volume = torch.where(inside | (volume <= level), volume, torch.zeros_like(volume))
-    cb_body = None
-    if moving_body is not None:
-        cb_body = _image_tensor(moving_body)
+    if fixed_body is not None:  # tissue-like voxels outside the CT's body (the couch) become air
+        volume = without_couch(volume, sitk_on_grid(fixed_body, s_grid, "bilinear", 0.0, antialias=False)[0],
+                               hu_range)
     t_origin = np.asarray(t_grid.origin, dtype=np.float64)
     s_origin = np.asarray(s_grid.origin, dtype=np.float64)
     out: list[SearchCandidate] = []
@@ -235,10 +221,6 @@ def global_search(
         r_matrix = params_to_matrix([0.0, 0.0, 0.0, *[float(v) for v in rot]], center)
         template = resample_to_grid(cb_smooth, crop_grid, t_grid, "bilinear", "zeros", 0.0, antialias=False,
                                     matrix=r_matrix)[0]
-        if cb_body is not None:
-            inside = resample_to_grid(cb_body[0], cb_body[1], t_grid, "bilinear", "zeros", 0.0, antialias=False,
-                                      matrix=r_matrix)[0] > 0.5
-            template = torch.where(inside | (template <= level), template, torch.zeros_like(template))
         mask = resample_to_grid(fov, fov_grid, t_grid, "nearest", "zeros", 0.0, antialias=False,
                                 matrix=r_matrix)[0]
         ncc = masked_ncc_map(volume, template, mask, fft_dtype=torch.float32, spectra=spectra)
@@ -257,32 +239,25 @@ def matrix_distance_mm(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> floa
     return float(np.linalg.norm(transform_points(a, points) - transform_points(b, points), axis=1).mean())
 
 
-def fov_similarity(fixed: sitk.Image, moving: sitk.Image, fov: sitk.Image, matrix: np.ndarray, grid: Grid,
-                    hu_range: tuple[float, float]) -> float:
-    """NCC of the CBCT and the CT mapped into it by ``matrix`` (fixed -> moving), over the CBCT field of view on
-    ``grid`` (a grid in the CBCT frame, so every estimate is scored on the same CBCT voxels)."""
-    def on(image: sitk.Image, m: np.ndarray | None, mode: str, pad: float) -> torch.Tensor:
-        if image.GetPixelID() != sitk.sitkFloat32:
-            image = sitk.Cast(image, sitk.sitkFloat32)
-        raw = torch.from_numpy(sitk.GetArrayFromImage(image)).permute(2, 1, 0)[None]
-        return resample_to_grid(raw, Grid.from_sitk(image), grid, mode, "zeros", pad, antialias=mode == "bilinear",
-                                matrix=m)[0]
-
+def fov_similarity(fixed: sitk.Image, moving: sitk.Image, fov: sitk.Image, matrices: Sequence[np.ndarray],
+                   grid: Grid, hu_range: tuple[float, float]) -> list[float]:
+    """For each fixed -> moving matrix, the NCC of the CBCT and the CT mapped into it, over the CBCT field of view on
+    ``grid`` (a grid in the CBCT frame, so every estimate is scored on the same CBCT voxels; the CBCT and its field
+    of view are resampled once) and where the CT has data."""
     a, b = hu_range
-    to_fixed = invert_matrix(matrix)
-    cb = on(moving, None, "bilinear", a).clamp(a, b)
-    ct = on(fixed, to_fixed, "bilinear", a).clamp(a, b)
-    # only where the CT has data: the grid points mapped into the CT's index space
-    idx = transform_points(np.linalg.inv(Grid.from_sitk(fixed).index_to_physical()) @ to_fixed,
-                           transform_points(grid.index_to_physical(), grid_indices(grid)))
-    inside = np.all((idx >= 0) & (idx <= np.asarray(fixed.GetSize()) - 1), axis=1).reshape(grid.size)
-    mask = (on(fov, None, "nearest", 0.0) > 0) & torch.from_numpy(inside)
-    return fov_ncc(cb, ct, mask.to(torch.float32))
-
-
-def grid_indices(grid: Grid) -> np.ndarray:
-    """``[N, 3]`` voxel indices of ``grid`` in row-major ``(x, y, z)`` order (the order of ``grid.size``)."""
-    return np.stack(np.meshgrid(*[np.arange(n, dtype=np.float64) for n in grid.size], indexing="ij"), -1).reshape(-1, 3)
+    cb = sitk_on_grid(moving, grid, "bilinear", a)[0].clamp(a, b)
+    in_fov = sitk_on_grid(fov, grid, "nearest", 0.0)[0] > 0
+    points = grid_points(grid, 1)
+    to_index = np.linalg.inv(Grid.from_sitk(fixed).index_to_physical())
+    out = []
+    for matrix in matrices:
+        to_fixed = invert_matrix(matrix)
+        ct = sitk_on_grid(fixed, grid, "bilinear", a, matrix=to_fixed)[0].clamp(a, b)
+        # only where the CT has data: the grid points mapped into the CT's index space
+        idx = transform_points(to_index @ to_fixed, points)
+        inside = np.all((idx >= 0) & (idx <= np.asarray(fixed.GetSize()) - 1), axis=1).reshape(grid.size)
+        out.append(fov_ncc(cb, ct, (in_fov & torch.from_numpy(inside)).to(torch.float32)))
+    return out
 
 
 SEARCH_AGREE_MM = 10.0

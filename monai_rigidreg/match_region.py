@@ -24,11 +24,13 @@ from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
+import torch
 
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import Grid
+from monai_rigidreg.transforms.grid import sitk_on_grid
 
-__all__ = ["MATCH_MODES", "parse_roi", "match_weight", "roi_center"]
+__all__ = ["MATCH_MODES", "parse_roi", "match_weight", "roi_center", "weight_on_grid"]
 
 MATCH_MODES = ("soft", "bone")
 """``soft``: all tissue (default); ``bone``: the CT's bone and its surroundings only."""
@@ -143,3 +145,14 @@ def roi_center(fixed: sitk.Image, weight: sitk.Image | None) -> np.ndarray | Non
         return None
     to_mm = Grid.from_sitk(fixed).index_to_physical()
     return idx.mean(0) @ to_mm[:3, :3].T + to_mm[:3, 3]
+
+
+def weight_on_grid(weights: Sequence[sitk.Image], grid: Grid) -> torch.Tensor | None:
+    """The product of CT-frame weight images (match region, body; any grids) resampled onto ``grid``:
+    ``[1, *grid.size]`` float32, or ``None`` without weights."""
+    out = None
+    for image in weights:
+        on = sitk_on_grid(image, grid, "bilinear", 0.0)
+        out = on if out is None else out * on
+    return out
+

@@ -23,20 +23,14 @@ from collections.abc import Sequence
 import numpy as np
 import SimpleITK as sitk
 import torch
-import torch.nn.functional as F
 
 from monai_rigidreg.geometry import Grid, invert_matrix, transform_points
-from monai_rigidreg.image_ops import erode, gaussian_smooth
+from monai_rigidreg.image_ops import erode
+from monai_rigidreg.match_region import weight_on_grid
 from monai_rigidreg.networks.gauss_newton import alignment_features, gauss_newton_align
-from monai_rigidreg.transforms.grid import resample_to_grid
+from monai_rigidreg.transforms.grid import sitk_on_grid
 
 __all__ = ["native_grid", "refine_native"]
-
-
-def _tensor(image: sitk.Image) -> tuple[torch.Tensor, Grid]:
-    if image.GetPixelID() != sitk.sitkFloat32:
-        image = sitk.Cast(image, sitk.sitkFloat32)
-    return torch.from_numpy(sitk.GetArrayFromImage(image)).permute(2, 1, 0)[None], Grid.from_sitk(image)
 
 
 def native_grid(fixed: sitk.Image, moving: sitk.Image, matrix: np.ndarray, min_spacing_mm: float = 1.0,
@@ -61,7 +55,7 @@ def refine_native(
     moving: sitk.Image,
     matrix: np.ndarray,
     moving_fov: sitk.Image,
-    weight: sitk.Image | Sequence[sitk.Image] | None = None,
+    weights: Sequence[sitk.Image] = (),
     iterations: int = 4,
     hu_range: tuple[float, float] = (-1200.0, 2000.0),
     highpass_sigma_mm: float = 16.0,
@@ -71,7 +65,6 @@ def refine_native(
     min_spacing_mm: float = 1.0,
     max_extent_mm: float = 256.0,
     max_voxels: int = 1_500_000,
-    smooth_mm: float = 0.0,
     device: str | torch.device = "cpu",
 ) -> tuple[np.ndarray, Grid]:
     """Refine a fixed -> moving 4x4 ``matrix`` (LPS mm) at native resolution over the CBCT field of view.
@@ -80,8 +73,8 @@ def refine_native(
         fixed, moving: the CT and the CBCT (HU), any grids.
         matrix: the current estimate (e.g. the network's), fixed -> moving.
         moving_fov: the CBCT's field-of-view mask on its grid.
-        weight: optional match-region weight(s) on the CT's physical space (any grid; several multiply), e.g.
-            :func:`~monai_rigidreg.match_region.match_weight` and the body mask.
+        weights: match-region weights on the CT's physical space (any grids; they multiply,
+            :func:`~monai_rigidreg.match_region.weight_on_grid`), e.g. the ROI weight and the body mask.
         iterations: Gauss-Newton steps (each at most 10 mm / 5 degrees).
         hu_range: the HU window mapped to [0, 1]. Its lower end lies below air on purpose: clipped at -1000 HU, the
             noise of a CBCT's air is clipped on one side only, its mean rises above the CT's, and the intensity
@@ -91,7 +84,6 @@ def refine_native(
         support_erosion_mm: erosion of the CBCT field of view.
         bias_degree: the smooth intensity bias estimated with the pose (-1: none).
         min_spacing_mm, max_extent_mm, max_voxels: the grid (:func:`native_grid`).
-        smooth_mm: Gaussian sigma applied to both images first (0: none).
         device: where to compute.
 
     Returns:
@@ -100,25 +92,16 @@ def refine_native(
     grid = native_grid(fixed, moving, matrix, min_spacing_mm, max_extent_mm, max_voxels)
     a, b = hu_range
 
-    def sample(image: sitk.Image, m: np.ndarray | None, mode: str, pad: float) -> torch.Tensor:
-        raw, g = _tensor(image)
-        return resample_to_grid(raw, g, grid, mode, "zeros", pad, antialias=mode == "bilinear", matrix=m)
-
-    fixed_t = ((sample(fixed, None, "bilinear", a).clamp(a, b) - a) / (b - a))[None].to(device)
-    moving_t = ((sample(moving, matrix, "bilinear", a).clamp(a, b) - a) / (b - a))[None].to(device)
-    fov = (sample(moving_fov, matrix, "nearest", 0.0) > 0).to(torch.float32)[None].to(device)
+    fixed_t = ((sitk_on_grid(fixed, grid, "bilinear", a).clamp(a, b) - a) / (b - a))[None].to(device)
+    moving_t = ((sitk_on_grid(moving, grid, "bilinear", a, matrix=matrix).clamp(a, b) - a) / (b - a))[None].to(device)
+    fov = (sitk_on_grid(moving_fov, grid, "nearest", 0.0, matrix=matrix) > 0).to(torch.float32)[None].to(device)
     radius = [max(1, round(support_erosion_mm / s)) for s in grid.spacing]
     support = erode(fov, radius)
-    w = None
-    for image in [weight] if isinstance(weight, sitk.Image) else list(weight or []):
-        on = sample(image, None, "bilinear", 0.0)[None].to(device)
-        w = on if w is None else w * on
-    both = torch.cat([moving_t, fixed_t])
-    if smooth_mm > 0:  # noise interpolated at sub-voxel positions biases the steps; a light blur removes that
-        both = gaussian_smooth(both, [smooth_mm / s for s in grid.spacing], padding="replicate")
-    feats = alignment_features(both, grid.spacing, 1e-3, highpass_sigma_mm, highpass_weight)
+    w = weight_on_grid(weights, grid)
+    w = None if w is None else w[None].to(device)
+    feats = alignment_features(torch.cat([moving_t, fixed_t]), grid.spacing, 1e-3, highpass_sigma_mm, highpass_weight)
     # the support rides with the moving image (it was sampled through the estimate too): identity start
     eye = torch.eye(4, dtype=torch.float64, device=device)[None]
     residual = gauss_newton_align(feats[:1], feats[1:], grid, eye, iterations=iterations, weight=w,
-                                  moving_support=F.relu(support), bias_degree=bias_degree)
+                                  moving_support=support, bias_degree=bias_degree)
     return matrix @ residual[0].cpu().numpy(), grid

@@ -59,8 +59,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="skip the last Gauss-Newton steps over the whole CBCT field of view at the inputs' resolution "
                    "(on by default; see the README for what it changes)")
     p.add_argument("--keep-couch", action="store_true",
-                   help="keep the couches in the match (by default everything outside each image's body, the CT's "
-                   "and the treatment couch, counts as air: they do not move with the patient)")
+                   help="keep the couches in the match (by default the CT's tissue outside its body, the couch, "
+                   "counts as air and carries no match weight, so the treatment couch in the CBCT meets none either: "
+                   "couches do not move with the patient)")
     p.add_argument("--transform-format", choices=("tfm", "h5"), default="tfm",
                    help="ITK transform file: transform.tfm (text) or transform.h5 (HDF5)")
     p.add_argument("--fail-on-flag", action="store_true",
@@ -83,15 +84,14 @@ def run(args: argparse.Namespace) -> int:
 
     # inputs, options and the output folder before the network is loaded (register_files checks them again, cheaply)
     check_register_inputs(args.fixed, args.moving, args.output_dir, args.overwrite, args.cascade_steps)
-    _match_options(args)
-    registrar = RigidRegistrar.from_bundle(args.bundle, device=args.device)
-    registrar.native_level = registrar.native_level and not args.no_native_level
+    options = _match_options(args)
+    registrar = _load_registrar(args, RigidRegistrar)
     paths = register_files(registrar, args.fixed, args.moving, args.output_dir, refine=args.refine,
                            overwrite=args.overwrite, qc=not args.no_qc, cascade_steps=args.cascade_steps,
                            fixed_series_uid=args.fixed_series_uid, moving_series_uid=args.moving_series_uid,
                            isocenter=args.isocenter, reg=args.reg, transform_format=args.transform_format,
                            fine_stage=False if args.no_fine_stage else None, patient_position=args.patient_position,
-                           **_match_options(args))
+                           **options)
     summary = json.loads(paths["result.json"].read_text())
     couch = summary.get("couch_shift", {})
     print(json.dumps({"params": summary["params"], "confidence": round(summary["confidence"], 3),
@@ -103,6 +103,13 @@ def run(args: argparse.Namespace) -> int:
     for name, p in paths.items():
         print(f"  {name:18s} {p}")
     return 3 if args.fail_on_flag and summary["flagged"] else 0  # 3: cli.EXIT_FLAGGED
+
+
+def _load_registrar(args: argparse.Namespace, registrar_cls: Any) -> Any:
+    """The bundle's registrar on ``--device``, with ``--no-native-level`` applied."""
+    registrar = registrar_cls.from_bundle(args.bundle, device=args.device)
+    registrar.native_level = registrar.native_level and not args.no_native_level
+    return registrar
 
 
 def _match_options(args: argparse.Namespace) -> dict[str, Any]:
@@ -123,12 +130,12 @@ def _run_batch(args: argparse.Namespace, registrar_cls: Any, evaluator_cls: Any,
         raise InputError("give either --fixed/--moving (one pair) or --datalist (pairs), not both")
     pairs = pairs_fn(datalist=args.datalist, dataset_dir=args.datalist.parent)
     check_output_dir(args.output_dir, args.overwrite, allow_existing=True)
-    registrar = registrar_cls.from_bundle(args.bundle, device=args.device)
-    registrar.native_level = registrar.native_level and not args.no_native_level
+    options = _match_options(args)
+    registrar = _load_registrar(args, registrar_cls)
     evaluator = evaluator_cls(registrar, pairs, args.output_dir, refine=args.refine, overwrite=args.overwrite,
                               qc=not args.no_qc, fine_stage=False if args.no_fine_stage else None,
                               isocenter=args.isocenter, reg=args.reg, transform_format=args.transform_format,
-                              patient_position=args.patient_position, **_match_options(args))
+                              patient_position=args.patient_position, **options)
     summary = evaluator.run()  # BatchFailures (exit status 2) names the pairs that failed
     print(json.dumps(summary, indent=2))
     return 0

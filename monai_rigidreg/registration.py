@@ -53,12 +53,12 @@ from monai_rigidreg.geometry import (
 )
 from monai_rigidreg.global_init import SEARCH_AGREE_MM, fov_similarity, global_search, matrix_distance_mm
 from monai_rigidreg.io import as_image, check_distinct_inputs, grids_overlap, resample
-from monai_rigidreg.match_region import RoiLike, match_weight, parse_roi
+from monai_rigidreg.match_region import RoiLike, match_weight, parse_roi, weight_on_grid
 from monai_rigidreg.network_grid import NetworkGridSpec
 from monai_rigidreg.networks import cascade_register
 from monai_rigidreg.precision import refine_native
 from monai_rigidreg.provenance import bundle_record
-from monai_rigidreg.transforms.grid import NormalizeHU, ResampleToNetworkGrid, resample_to_grid
+from monai_rigidreg.transforms.grid import NormalizeHU, ResampleToNetworkGrid, sitk_on_grid
 
 __all__ = ["RegistrationResult", "RigidRegistrar", "register", "check_intensities", "fine_stage_switch"]
 
@@ -272,11 +272,7 @@ class RigidRegistrar:
         (``benchmarks/bench_inference_speed.py``: both volumes in 0.04 s instead of 0.20 s through
         ``sitk_to_metatensor`` and the MONAI transforms; the forward pass 0.105 s instead of 0.138 s).
         """
-        if image.GetPixelID() != sitk.sitkFloat32:
-            image = sitk.Cast(image, sitk.sitkFloat32)
-        raw = torch.from_numpy(sitk.GetArrayFromImage(image)).permute(2, 1, 0)[None]
-        return resample_to_grid(raw, Grid.from_sitk(image), grid, mode, "zeros", padding_value,
-                                antialias=self._resampler.antialias and mode == "bilinear", matrix=matrix)
+        return sitk_on_grid(image, grid, mode, padding_value, antialias=self._resampler.antialias, matrix=matrix)
 
     @torch.no_grad()
     def estimate(self, moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, steps: int | None = None,
@@ -345,24 +341,22 @@ class RigidRegistrar:
         is the match weight; ``body``: the CT's body (tissue-like voxels outside it, the couch, become air). Adds to
         ``timings["preprocess"]`` and ``["network"]``."""
         t = time.perf_counter()
-        c_moving = Grid.from_sitk(moving_img).center()
-        identity = np.allclose(start, np.eye(4))
-        center = c_moving if identity else transform_points(invert_matrix(start), c_moving[None])[0]
+        sampling = None if np.allclose(start, np.eye(4)) else start
+        center = Grid.from_sitk(moving_img).center()
+        if sampling is not None:
+            center = transform_points(invert_matrix(sampling), center[None])[0]
         grid = self.grid_spec.centered(center)
         fixed_t = self.preprocess(fixed_img, grid)
-        moving_t = self.preprocess(moving_img, grid, None if identity else start)
+        moving_t = self.preprocess(moving_img, grid, sampling)
         if body is not None:
             fixed_t = without_couch(fixed_t, self._on_grid(body, grid, "bilinear", 0.0), self.hu_range)
-        weight_t = None
-        for w in weights:
-            on = self._on_grid(w, grid, "bilinear", 0.0)
-            weight_t = on if weight_t is None else weight_t * on
+        weight_t = weight_on_grid(weights, grid)
         timings["preprocess"] = timings.get("preprocess", 0.0) + time.perf_counter() - t
         t = time.perf_counter()
         residual = self.estimate(moving_t, fixed_t, grid, steps, weight_t)
         timings["network"] = timings.get("network", 0.0) + time.perf_counter() - t
         total = start @ params_to_matrix(residual, grid.center())
-        return _Run(grid, fixed_t, moving_t, weight_t, start, residual, total)
+        return _Run(grid, fixed_t, moving_t, start, residual, total)
 
     def _register(
         self,
@@ -390,10 +384,13 @@ class RigidRegistrar:
                 "the CT (fixed) and CBCT (moving) do not overlap in physical space: check that both are in the "
                 "same patient coordinate system (origins and directions)"
             )
+        roi = parse_roi(roi)  # once: a mask file is read here
         weight_img = match_weight(fixed_img, roi, match)
-        # the CBCT field of view: for the refinement, the confidence signals and the global search
+        stage = getattr(self.network, "fine_stage", None)
+        native = self.native_level and stage is not None and getattr(self.network, "fine_stage_enabled", True)
+        # the CBCT field of view: for the refinement, the confidence signals, the global search and the last level
         fov_img = None
-        if refine or assess or global_init:
+        if refine or assess or global_init or native:
             fov_img = cylindrical_fov_mask(moving_img) if moving_fov is None else moving_fov
 
         body = None
@@ -416,8 +413,8 @@ class RigidRegistrar:
                 "this network takes no match-region weight: the region of interest / bone match applies to the last "
                 "level only (where it runs)")
         if roi is not None or match != "soft":
-            details["match_region"] = {"roi": _jsonable(roi) if not isinstance(parse_roi(roi), sitk.Image)
-                                       else "mask", "match": match}
+            details["match_region"] = {"roi": "mask" if isinstance(roi, sitk.Image) else list(roi) if roi else None,
+                                       "match": match}
         if warnings:
             details.setdefault("warnings", []).extend(warnings)
         if global_init:
@@ -435,8 +432,8 @@ class RigidRegistrar:
                 t = time.perf_counter()
                 alt = self._run_from(fixed_img, moving_img, best.matrix, cascade_steps, weights, timings, body)
                 ref_grid = self.grid_spec.pooled(2).centered(Grid.from_sitk(moving_img).center())
-                s0 = fov_similarity(fixed_img, moving_img, fov_img, run.total, ref_grid, self.hu_range)
-                s1 = fov_similarity(fixed_img, moving_img, fov_img, alt.total, ref_grid, self.hu_range)
+                s0, s1 = fov_similarity(fixed_img, moving_img, fov_img, [run.total, alt.total], ref_grid,
+                                        self.hu_range)
                 search.update(identity_start_ncc=round(s0, 4), search_start_ncc=round(s1, 4))
                 if s1 > s0:
                     run = alt
@@ -447,25 +444,22 @@ class RigidRegistrar:
         grid_center = grid.center()  # params are about it until re-expressed at the end
         net_params = matrix_to_params(run.total, grid_center)
         params = net_params.copy()
-        stage = getattr(self.network, "fine_stage", None)
-        if self.native_level and stage is not None and getattr(self.network, "fine_stage_enabled", True):
+        if native:
             t = time.perf_counter()
-            native, native_grid = refine_native(
-                fixed_img, moving_img, run.total, fov_img if fov_img is not None else cylindrical_fov_mask(moving_img),
-                weights, highpass_sigma_mm=stage.highpass_sigma_mm,
+            refined, native_grid = refine_native(
+                fixed_img, moving_img, run.total, fov_img, weights, highpass_sigma_mm=stage.highpass_sigma_mm,
                 highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
                 bias_degree=stage.bias_degree, device=self.device)
-            params = matrix_to_params(native, grid_center)
+            params = matrix_to_params(refined, grid_center)
             net_params = params.copy()
             details["native_level"] = {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size),
-                                       "change_mm": round(matrix_distance_mm(native, run.total,
+                                       "change_mm": round(matrix_distance_mm(refined, run.total,
                                                                              grid_points(grid, 8)), 3)}
             timings["native_level"] = time.perf_counter() - t
 
         fov_t = None
         if refine or assess:
-            start = None if np.allclose(run.start, np.eye(4)) else run.start
-            fov_t = self._on_grid(fov_img, grid, "nearest", 0.0, start)[0]
+            fov_t = self._on_grid(fov_img, grid, "nearest", 0.0, run.sampling)[0]
         if refine:
             def refine_from(start_params: np.ndarray) -> Any:
                 return register_sitk(fixed_img, moving_img, initial_params=start_params, center=grid_center,
@@ -529,10 +523,14 @@ class _Run:
     grid: Grid
     fixed_t: torch.Tensor
     moving_t: torch.Tensor
-    weight_t: torch.Tensor | None
     start: np.ndarray
     residual: np.ndarray
     total: np.ndarray
+
+    @property
+    def sampling(self) -> np.ndarray | None:
+        """The matrix the CBCT was sampled through onto ``grid`` (``None`` for the identity start)."""
+        return None if np.allclose(self.start, np.eye(4)) else self.start
 
 
 HU_AIR_LIMIT = -500.0

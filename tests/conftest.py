@@ -159,3 +159,13 @@ def synth_ct(grid, seed: int, radius_mm: float | None = None) -> sitk.Image:
     img.SetDirection(grid.direction)
     return img
 
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """One torch thread for a module (``pytestmark = pytest.mark.usefixtures("one_torch_thread")``): the CPU is
+    shared, and OpenMP spinning on a busy machine is very slow."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+

@@ -39,13 +39,7 @@ BEAD = np.array([20.0, -5.0, 4.0])  # offset of a dense bead from the CT centre,
 SPEC = ClinicalCBCTSpec(size=(32, 32, 24), spacing=4.0, views=60, physics=CBCTPhysics.ideal(), extension_mm=40.0)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """One torch thread: the CPU is shared."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _synthetic_ct() -> sitk.Image:

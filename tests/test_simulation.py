@@ -53,13 +53,7 @@ TINY = {  # dataset overrides: Sim-CT 32^3 at 8 mm, CBCT 24^3 at 10 mm, few view
 }
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    """One torch thread: the CPU is shared, and OpenMP spinning on a busy machine is very slow."""
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _ball(grid: Grid, radius: float, mu: float = MU, center=(0.0, 0.0, 0.0)) -> torch.Tensor:

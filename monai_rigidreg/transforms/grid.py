@@ -30,6 +30,8 @@ from monai_rigidreg.transforms.utils import PaddingValue, as_matrix, grid_of, re
 __all__ = [
     "network_grid",
     "resample_to_grid",
+    "sitk_tensor",
+    "sitk_on_grid",
     "ResampleToNetworkGrid",
     "ResampleToNetworkGridd",
     "NormalizeHU",
@@ -217,6 +219,23 @@ def resample_to_grid(
         img = antialias_for_grid(img, sample_grid, grid)
     return resample_physical(img, np.eye(4) if matrix is None else matrix, grid, sample_grid, mode, padding_mode,
                              padding_value)
+
+
+def sitk_tensor(image: sitk.Image) -> tuple[torch.Tensor, Grid]:
+    """``[1, x, y, z]`` float32 tensor of a SimpleITK image and its grid: the ``[z, y, x]`` array viewed as
+    ``[x, y, z]`` without a copy, so :func:`resample_to_grid` transposes only the part a smaller grid covers."""
+    if image.GetPixelID() != sitk.sitkFloat32:
+        image = sitk.Cast(image, sitk.sitkFloat32)
+    return torch.from_numpy(sitk.GetArrayFromImage(image)).permute(2, 1, 0)[None], Grid.from_sitk(image)
+
+
+def sitk_on_grid(image: sitk.Image, grid: Grid, mode: str = "bilinear", padding_value: PaddingValue = -1000.0,
+                 antialias: bool = True, matrix: np.ndarray | None = None) -> torch.Tensor:
+    """``[1, *grid.size]`` float32 plain tensor of a SimpleITK image resampled onto ``grid`` by
+    :func:`resample_to_grid` (anti-aliased only with ``"bilinear"``; ``matrix``: grid point -> image point, LPS mm)."""
+    raw, in_grid = sitk_tensor(image)
+    return resample_to_grid(raw, in_grid, grid, mode, "zeros", padding_value,
+                            antialias=antialias and mode == "bilinear", matrix=matrix)
 
 
 def _resample_and_push(
