@@ -12,9 +12,21 @@ monai_rigidreg.registration"`` spends most of its time in ``monai``, and the com
 from __future__ import annotations
 
 import importlib
+import os
+import sys
 from typing import Any
 
 __version__ = "0.4.0"
+
+# Thread policy (before anything imports torch): PyTorch's OpenMP worker threads spin while they wait for work
+# (libgomp's default), so beside another CPU-bound process on a 2-core machine each spinning thread steals the
+# core the other process needs: measured by ``benchmarks/bench_speed.py`` (a registration beside one
+# single-threaded busy loop took 2.2x its quiet time with the default policy, 1.1x with ``PASSIVE``, at about 10 %
+# quiet-machine cost). libgomp reads the variable when torch loads it, so this applies only where the caller has not
+# imported torch yet and has not chosen a policy itself (``THREAD_POLICY_APPLIED`` says whether it did).
+THREAD_POLICY_APPLIED = "torch" not in sys.modules and "OMP_WAIT_POLICY" not in os.environ
+if THREAD_POLICY_APPLIED:
+    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
 from monai_rigidreg.geometry import (  # noqa: E402
     PARAM_NAMES,

@@ -35,18 +35,33 @@ EXIT_CODES_HELP = ("exit status: " + "; ".join(f"{code} {text}" for code, text i
                    + ". A failed run leaves no partial output (simulate keeps the finished cases of an interrupted "
                    "run, to resume; its dataset.json appears only when the dataset is complete).")
 
-# sub-command modules, in the order they appear in --help
-COMMAND_MODULES = (
-    "monai_rigidreg.simulation.cli",
-    "monai_rigidreg.engine.cli",
-    "monai_rigidreg.register_cli",
-    "monai_rigidreg.evaluation.cli",
-    "monai_rigidreg.demo",
-)
+# sub-command name -> its module, in the order they appear in --help
+COMMANDS = {
+    "simulate": "monai_rigidreg.simulation.cli",
+    "train": "monai_rigidreg.engine.cli",
+    "register": "monai_rigidreg.register_cli",
+    "evaluate": "monai_rigidreg.evaluation.cli",
+    "demo": "monai_rigidreg.demo",
+}
+COMMAND_MODULES = tuple(COMMANDS.values())
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser with every available sub-command."""
+def _command_in(argv: Sequence[str]) -> str | None:
+    """The sub-command named in ``argv`` (the first word that is not an option), if it is one of :data:`COMMANDS`."""
+    for word in argv:
+        if not word.startswith("-"):
+            return word if word in COMMANDS else None
+    return None
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The argument parser with every available sub-command, or with ``command`` alone.
+
+    Importing a sub-command's module imports what it needs (the simulator pulls in MONAI's transforms, training
+    ignite): ``monai-rigidreg register`` builds its own parser only, so it does not pay for the others' imports
+    (``python -X importtime -m monai_rigidreg.cli register --help``; ``benchmarks/bench_speed.py`` times the
+    command).
+    """
     parser = argparse.ArgumentParser(
         prog="monai-rigidreg",
         description="Rigid 6-DoF CBCT to planning-CT registration (MONAI plugin).",
@@ -55,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     _add_verbosity(parser, defaults=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
+    for name in ([COMMANDS[command]] if command in COMMANDS else COMMAND_MODULES):
         try:
             module = importlib.import_module(name)
         except ModuleNotFoundError as exc:
@@ -88,7 +103,8 @@ def log_level(verbose: int, quiet: int) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``monai-rigidreg`` console script."""
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(_command_in(argv))
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=log_level(args.verbose, args.quiet),

@@ -1,7 +1,10 @@
-"""The one place that turns a user's device choice (``"auto"``, ``"cpu"``, ``"cuda:1"``, ...) into a ``torch.device``.
+"""The one place that turns a user's device choice (``"auto"``, ``"cpu"``, ``"cuda:1"``, ...) into a ``torch.device``,
+and a thread count into the CPU thread settings of torch and SimpleITK.
 
 Every part of the package (registration, simulation, training glue) calls :func:`resolve_device`, so a bad device
 string is reported the same way everywhere: as :class:`~monai_rigidreg.errors.InputError` naming the value.
+:func:`set_cpu_threads` is what ``monai-rigidreg register --threads N`` calls (the OpenMP wait policy is set when the
+package is imported, see ``monai_rigidreg/__init__.py``).
 """
 
 from __future__ import annotations
@@ -10,7 +13,7 @@ import torch
 
 from monai_rigidreg.errors import InputError
 
-__all__ = ["resolve_device"]
+__all__ = ["resolve_device", "set_cpu_threads"]
 
 
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
@@ -33,3 +36,21 @@ def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
             raise InputError(f"device {str(device)!r} was asked for but only {torch.cuda.device_count()} CUDA "
                              "device(s) exist")
     return dev
+
+
+def set_cpu_threads(threads: int | None) -> int:
+    """Use ``threads`` CPU threads in torch's intra-op pool and in SimpleITK's filters (``None``: leave both as they
+    are: torch's default is one per core). Returns the torch thread count now in effect.
+
+    Raises:
+        InputError: ``threads`` < 1.
+    """
+    if threads is None:
+        return torch.get_num_threads()
+    if int(threads) < 1:
+        raise InputError(f"threads must be at least 1, got {threads}")
+    import SimpleITK as sitk
+
+    torch.set_num_threads(int(threads))
+    sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(int(threads))
+    return torch.get_num_threads()

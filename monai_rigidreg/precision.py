@@ -66,6 +66,8 @@ def refine_native(
     max_extent_mm: float = 256.0,
     max_voxels: int = 1_500_000,
     device: str | torch.device = "cpu",
+    tolerance: tuple[float, float] | None = (0.01, 0.01),
+    secant: bool = False,
 ) -> tuple[np.ndarray, Grid]:
     """Refine a fixed -> moving 4x4 ``matrix`` (LPS mm) at native resolution over the CBCT field of view.
 
@@ -85,6 +87,8 @@ def refine_native(
         bias_degree: the smooth intensity bias estimated with the pose (-1: none).
         min_spacing_mm, max_extent_mm, max_voxels: the grid (:func:`native_grid`).
         device: where to compute.
+        tolerance: ``(mm, degrees)``: stop early once a step is below both (``None``: all ``iterations``).
+        secant: secant-scaled steps (see :func:`~monai_rigidreg.networks.gauss_newton.gauss_newton_align`).
 
     Returns:
         ``(refined matrix, the grid used)``.
@@ -103,5 +107,6 @@ def refine_native(
     # the support rides with the moving image (it was sampled through the estimate too): identity start
     eye = torch.eye(4, dtype=torch.float64, device=device)[None]
     residual = gauss_newton_align(feats[:1], feats[1:], grid, eye, iterations=iterations, weight=w,
-                                  moving_support=support, bias_degree=bias_degree)
+                                  moving_support=support, bias_degree=bias_degree, tolerance=tolerance,
+                                  secant=secant)
     return matrix @ residual[0].cpu().numpy(), grid

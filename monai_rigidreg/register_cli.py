@@ -29,6 +29,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--output-dir", required=True, type=Path)
     p.add_argument("--refine", action="store_true", help="polish with SimpleITK Mattes MI (masked to the CBCT FOV)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    p.add_argument("--threads", type=int, default=None, metavar="N",
+                   help="CPU threads for torch and SimpleITK (default: one per core; 1 on a machine busy with "
+                        "other work)")
     p.add_argument("--bundle", type=Path, default=None, help="MONAI bundle directory (default: the shipped one)")
     p.add_argument("--cascade-steps", type=int, default=None, help="network applications (default: bundle's)")
     p.add_argument("--fixed-series-uid", default=None, help="DICOM series UID of the CT (default: largest)")
@@ -107,6 +110,9 @@ def run(args: argparse.Namespace) -> int:
 
 def _load_registrar(args: argparse.Namespace, registrar_cls: Any) -> Any:
     """The bundle's registrar on ``--device``, with ``--no-native-level`` applied."""
+    from monai_rigidreg.device import set_cpu_threads
+
+    set_cpu_threads(args.threads)
     registrar = registrar_cls.from_bundle(args.bundle, device=args.device)
     registrar.native_level = registrar.native_level and not args.no_native_level
     return registrar

@@ -449,7 +449,8 @@ class RigidRegistrar:
             refined, native_grid = refine_native(
                 fixed_img, moving_img, run.total, fov_img, weights, highpass_sigma_mm=stage.highpass_sigma_mm,
                 highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
-                bias_degree=stage.bias_degree, device=self.device)
+                bias_degree=stage.bias_degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
+                secant=getattr(stage, "secant", False))
             params = matrix_to_params(refined, grid_center)
             net_params = params.copy()
             details["native_level"] = {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size),

@@ -274,3 +274,65 @@ def test_scripting_the_two_stage_net_fails_loudly_with_the_way_out():
     scripted = torch.jit.script(net.regression)
     x = torch.rand(1, 2, 16, 16, 16)
     torch.testing.assert_close(scripted(x), net.regression(x))
+
+
+def _low_contrast_pair(gain: float = 0.35):
+    """A moving image whose contrast is ``gain`` times the fixed image's (as a blurred, noisy CBCT's features are):
+    the fixed-image Jacobian over-estimates the curvature and every plain step covers about ``gain`` of the error."""
+    grid = Grid.centered((32, 32, 32), (3.0, 3.0, 3.0), (0.0, 0.0, 0.0))
+    fixed = _blobs(grid.size, seed=2)
+    p = torch.tensor([[3.0, -2.0, 2.5, 2.0, -3.0, 2.5]], dtype=torch.float64)
+    moving = gain * _moving_for(fixed, p, grid)
+    return grid, fixed, moving, p
+
+
+def test_secant_steps_reach_the_same_fixed_point_in_fewer_steps():
+    grid, fixed, moving, p = _low_contrast_pair()
+    init = torch.eye(4, dtype=torch.float64)[None]
+    params = lambda m: matrix_to_params_torch(m, grid.center())  # noqa: E731
+    # plain steps contract by about 1 - gain per step; after 80 they sit at the least-squares fixed point (which
+    # the contrast mismatch moves a little off the known motion)
+    converged = params(gauss_newton_align(moving, fixed, grid, init, iterations=80))
+    assert (converged - p).abs().max() < 0.5
+    dist = lambda m: (params(m) - converged).abs().max().item()  # noqa: E731
+    assert dist(gauss_newton_align(moving, fixed, grid, init, iterations=4)) > 0.3
+    # secant-scaled steps: at that fixed point in 4 steps
+    assert dist(gauss_newton_align(moving, fixed, grid, init, iterations=4, secant=True)) < 0.05
+    # equal contrast: the secant gain stays near 1 and costs nothing
+    grid, fixed, moving, p = _low_contrast_pair(gain=1.0)
+    assert (params(gauss_newton_align(moving, fixed, grid, init, iterations=6, secant=True)) - p).abs().max() < 0.1
+
+
+def test_tolerance_stops_once_the_steps_are_small(monkeypatch):
+    import monai_rigidreg.networks.gauss_newton as gn
+
+    grid, fixed, moving, p = _low_contrast_pair(gain=1.0)
+    init = torch.eye(4, dtype=torch.float64)[None]
+    calls = []
+    real_warp = gn.warp_volume
+    monkeypatch.setattr(gn, "warp_volume", lambda *a, **k: calls.append(1) or real_warp(*a, **k))
+    full = gauss_newton_align(moving, fixed, grid, init, iterations=40)
+    assert len(calls) == 40
+    calls.clear()
+    early = gauss_newton_align(moving, fixed, grid, init, iterations=40, tolerance=(0.01, 0.01))
+    assert 2 <= len(calls) < 20  # stopped long before 40 steps
+    diff = (matrix_to_params_torch(early, grid.center()) - matrix_to_params_torch(full, grid.center())).abs()
+    assert diff.max().item() < 0.02
+
+
+def test_stage_applies_tolerance_and_secant_at_inference_only():
+    grid, fixed, moving, p = _low_contrast_pair()
+    start = torch.zeros(1, 6, dtype=torch.float64)
+    plain = GaussNewtonStage((3.0, 3.0, 3.0), iterations=(3,), levels=(1,), highpass_weight=0.0)
+    fast = GaussNewtonStage((3.0, 3.0, 3.0), iterations=(3,), levels=(1,), highpass_weight=0.0, secant=True,
+                            tolerance=(0.01, 0.01))
+    assert "secant=True" in repr(fast)
+    with torch.no_grad():
+        a, _ = plain(moving, fixed, start)
+        b, _ = fast(moving, fixed, start)
+    assert (b - p).abs().max() < 0.7 * (a - p).abs().max()  # secant steps got closer in the same 3 steps
+    with torch.enable_grad():  # training: the same plain steps, whatever the settings
+        c, _ = fast(moving.clone().requires_grad_(True), fixed, start)
+    torch.testing.assert_close(c.detach(), a)
+    with pytest.raises(ValueError, match="tolerance"):
+        GaussNewtonStage((3.0, 3.0, 3.0), tolerance=(0.0, 0.01))
