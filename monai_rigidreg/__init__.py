@@ -16,14 +16,15 @@ import os
 import sys
 from typing import Any
 
-__version__ = "0.4.0"
+__version__ = "0.4.1"
 
 # Thread policy (before anything imports torch): PyTorch's OpenMP worker threads spin while they wait for work
 # (libgomp's default), so beside another CPU-bound process on a 2-core machine each spinning thread steals the
 # core the other process needs: measured by ``benchmarks/bench_speed.py`` (a registration beside one
-# single-threaded busy loop took 2.2x its quiet time with the default policy, 1.1x with ``PASSIVE``, at about 10 %
-# quiet-machine cost). libgomp reads the variable when torch loads it, so this applies only where the caller has not
-# imported torch yet and has not chosen a policy itself (``THREAD_POLICY_APPLIED`` says whether it did).
+# single-threaded busy loop took 1.95x its quiet time with the default policy, 1.18x with ``PASSIVE``; beside a
+# second registration 3.17x and 1.36x; no measurable cost on a quiet machine). libgomp reads the variable when
+# torch loads it, so this applies only where the caller has not imported torch yet and has not chosen a policy
+# itself (``THREAD_POLICY_APPLIED`` says whether it did).
 THREAD_POLICY_APPLIED = "torch" not in sys.modules and "OMP_WAIT_POLICY" not in os.environ
 if THREAD_POLICY_APPLIED:
     os.environ["OMP_WAIT_POLICY"] = "PASSIVE"

@@ -97,7 +97,7 @@ def qc_figure(
     before = resample(moving, fixed, None)
     vols = [before, registered, fixed]
     arr_f = sitk.GetArrayViewFromImage(fixed)
-    lo, hi = window if window is not None else (float(np.percentile(arr_f, 1)), float(np.percentile(arr_f, 99)))
+    lo, hi = window if window is not None else (float(v) for v in np.percentile(arr_f, [1, 99]))
     center_index, fov = None, None
     if transform is not None:
         # the CBCT centre c_m sits at T^-1(c_m) in the fixed frame once registered

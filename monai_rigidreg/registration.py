@@ -27,7 +27,7 @@ import torch
 from monai.data import MetaTensor
 from torch import nn
 
-from monai_rigidreg.body import coarse_body_mask, without_couch
+from monai_rigidreg.body import BodyMaskCache, without_couch
 from monai_rigidreg.bundle import default_bundle_path, load_bundle_network
 from monai_rigidreg.classical import register_sitk
 from monai_rigidreg.confidence import (
@@ -216,6 +216,7 @@ class RigidRegistrar:
         self.accepts_weight = "fixed_weight" in inspect.signature(self.network.forward).parameters
         # one registration at a time per registrar: fine_stage_switch changes the shared network's setting
         self._lock = threading.RLock()
+        self._bodies = BodyMaskCache()  # the CT's body mask, computed once per planning CT
         self.source: dict[str, Any] = {}  # the bundle and weights it came from (from_bundle), for the audit trail
         self._resampler = ResampleToNetworkGrid(self.network_size, self.network_spacing, padding_value=hu_range[0])
         self._normalize = NormalizeHU(a_min=hu_range[0], a_max=hu_range[1])
@@ -400,14 +401,18 @@ class RigidRegistrar:
             # (A CBCT's own body mask is not used: a lung cut by its field of view breaks it, measured on the
             # clinical-geometry thorax pairs.)
             t = time.perf_counter()
-            body = coarse_body_mask(fixed_img)
+            hits = self._bodies.hits
+            body = self._bodies(fixed_img)
             timings["body"] = time.perf_counter() - t
+            body_cached = self._bodies.hits > hits
         weights = [w for w in (weight_img, body) if w is not None]
         run = self._run_from(fixed_img, moving_img, np.eye(4), cascade_steps, weights, timings, body)
         details: dict[str, Any] = {"network_params": {},
                                    "cascade_steps": self.cascade_steps if cascade_steps is None else cascade_steps,
                                    "device": str(self.device), "start": "identity",
                                    "couch_excluded": body is not None}
+        if not keep_couch:
+            details["body_mask"] = "cached" if body_cached else "computed"
         if (roi is not None or match != "soft") and not self.accepts_weight:
             details.setdefault("warnings", []).append(
                 "this network takes no match-region weight: the region of interest / bone match applies to the last "
@@ -600,7 +605,7 @@ def register(
             Gauss-Newton stage, search, multi-start or optimizer (``refine`` adds its optimizer, so keep it off for
             that). Also with ``model=`` a registrar built once. ``None`` (default): as the network is configured
             (the shipped bundle: on). ``details["fine_stage"]`` records what ran.
-        global_init: the global search for large offsets (translations over +-72 mm for 19 rotation
+        global_init: the global search for large offsets (translations over +-72 mm for 27 rotation
             candidates, :mod:`monai_rigidreg.global_init`): the network also starts from the search's best candidate
             when it disagrees with the estimate from the identity, and the estimate whose CBCT field of view matches
             the CT better is kept (``details["start"]`` says which: ``"identity"`` or ``"search"``). ``None``

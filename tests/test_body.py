@@ -376,3 +376,18 @@ def test_real_abdomen_ct_body_and_couch():
     # the patient (anterior to the couch, within its width) is kept whole
     assert body[(hu > -400) & (y < y.max() - 60.0) & (np.abs(x - x.mean()) < 100.0)].mean() > 0.99
     assert seconds < 10.0
+
+
+def test_body_mask_cache_keys_on_content_and_geometry_and_evicts_the_oldest():
+    from monai_rigidreg.body import BodyMaskCache, coarse_body_mask, image_key
+
+    img, _, _ = torso()
+    cache = BodyMaskCache(maxsize=1)
+    first = cache(img)
+    assert cache.hits == 0 and cache(img) is first and cache.hits == 1
+    assert np.array_equal(arr(first), arr(coarse_body_mask(img)))
+    moved = sitk.Image(img)
+    moved.SetOrigin([o + 1.0 for o in img.GetOrigin()])  # same voxels elsewhere: another image
+    assert image_key(moved) != image_key(img)
+    assert cache(moved) is not first and cache.hits == 1
+    assert cache(img) is not first and cache.hits == 1  # evicted by the second image (maxsize 1)

@@ -11,7 +11,7 @@ from conftest import synth_ct
 
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import Grid, matrix_to_sitk, params_to_matrix, recenter_params, target_registration_error
-from monai_rigidreg.global_init import global_search, masked_ncc_map, matrix_distance_mm
+from monai_rigidreg.global_init import DEFAULT_ROTATIONS_DEG, global_search, masked_ncc_map, matrix_distance_mm
 from monai_rigidreg.match_region import match_weight, parse_roi
 from monai_rigidreg.registration import RigidRegistrar
 
@@ -83,6 +83,12 @@ def test_global_search_finds_a_large_translation_and_the_rotation_basin(ct):
     cands = global_search(ct, _cbct(ct, truth, seed=1))
     assert cands[0].rotation_deg == (0.0, 25.0, 0.0)
     assert matrix_distance_mm(cands[0].matrix, truth, pts) < matrix_distance_mm(np.eye(4), truth, pts) / 2
+    # a rotation about all three axes (30, -30, 30 degrees): the three-axis candidate of the same signs wins
+    assert len(DEFAULT_ROTATIONS_DEG) == 27 and len(set(DEFAULT_ROTATIONS_DEG)) == 27
+    truth = params_to_matrix([20.0, 15.0, -25.0, 30.0, -30.0, 30.0], ISO)
+    cands = global_search(ct, _cbct(ct, truth, seed=3))
+    assert cands[0].rotation_deg == (25.0, -25.0, 25.0)
+    assert matrix_distance_mm(cands[0].matrix, truth, pts) < matrix_distance_mm(np.eye(4), truth, pts) / 3
 
 
 @pytest.fixture(scope="module")
@@ -198,3 +204,12 @@ def test_a_couch_that_did_not_move_is_excluded_by_default(registrar):
     assert res.details["couch_excluded"] and not kept.details["couch_excluded"]
     assert tre < 0.75
     assert tre_kept > tre + 0.5
+    # the same planning CT again (the next fraction): its body mask comes from the registrar's cache, and the
+    # estimate is the same; a CT that differs in one voxel is a new CT
+    assert res.details["body_mask"] in ("computed", "cached") and "body_mask" not in kept.details
+    again = registrar(ct_c, cb_c, resample_moving=False)
+    assert again.details["body_mask"] == "cached"
+    np.testing.assert_allclose(again.params, res.params, atol=1e-9)
+    other = sitk.Image(ct_c)
+    other[0, 0, 0] = other[0, 0, 0] + 1.0
+    assert registrar(other, cb_c, resample_moving=False).details["body_mask"] == "computed"
