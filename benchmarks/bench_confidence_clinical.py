@@ -1,0 +1,96 @@
+"""The failure flag's signals on the clinical-geometry pairs, case by case (issue 15's false alarms).
+
+For every pair made by ``benchmarks/bench_clinical_geometry.py`` (``<pairs-dir>/<ct>/<group>_<nnn>/``), registers it
+with the default path (the deformed pairs with their 70 mm ``--roi`` box, as the benchmark does) and prints the
+error (TRE over the CT body points in the field of view; landmark error on deformed pairs), success (< 2 mm;
+deformed: < rigid floor + 2 mm), the confidence and its two signals (``details.signals``: ``local_gain``, the edge
+alignment gained by a small perturbation, limit ``LOCAL_GAIN_LIMIT``; ``swap_tre_mm``, the disagreement with the
+swapped-input estimate, 3 mm gives 0.5), and which start won. A success with confidence < 0.5 is a false alarm; the
+signal below its limit in each row says which test raised it.
+
+Usage::
+
+    python benchmarks/bench_clinical_geometry.py --cts thorax_4dct_phase00_itkelastix head_tigre_ct \\
+        --cases-per-group 5 --simulate-only --output-dir bench_out/clinical   # the pairs
+    python benchmarks/bench_confidence_clinical.py --pairs-dir bench_out/clinical [--groups large deformed]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import monai_rigidreg  # noqa: E402  (first: its thread policy applies before torch loads)
+
+# isort: split
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from bench_clinical_geometry import roi_box  # noqa: E402
+from bench_common import Tee, find_cts  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--pairs-dir", type=Path, default=Path("bench_out/clinical"))
+    ap.add_argument("--groups", nargs="*", default=["small", "large", "deformed"])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--results", type=Path, default=None)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+
+    from monai_rigidreg.confidence import CONFIDENCE_THRESHOLD, LOCAL_GAIN_LIMIT
+    from monai_rigidreg.geometry import params_to_matrix, transform_points
+    from monai_rigidreg.global_init import matrix_distance_mm
+    from monai_rigidreg.simulation.clinical import load_clinical_case, load_planning_ct, tre_points
+
+    out = Tee()
+    out(f"command: python {' '.join(sys.argv)}")
+    out(f"monai-rigidreg {monai_rigidreg.__version__}; flag: confidence < {CONFIDENCE_THRESHOLD}; edge-gain limit "
+        f"{LOCAL_GAIN_LIMIT}; swap disagreement 3 mm -> 0.5")
+    registrar = monai_rigidreg.RigidRegistrar.from_bundle(device="cpu")
+    out("\n| CT | pair | error (mm) | success | confidence | local_gain | swap_tre_mm | start | verdict |")
+    out("|---|---|---|---|---|---|---|---|---|")
+    counts = {"false alarm": 0, "flagged failure": 0, "missed failure": 0, "ok": 0}
+    for ct_dir in sorted(p for p in args.pairs_dir.iterdir() if p.is_dir()):
+        paths = find_cts([ct_dir.name], out, (ct_dir.name,))
+        if not paths:
+            continue
+        ct = load_planning_ct(paths[0])
+        for case_dir in sorted(p for p in ct_dir.iterdir() if p.is_dir()):
+            if case_dir.name.rsplit("_", 1)[0] not in args.groups:
+                continue
+            case = load_clinical_case(case_dir)
+            if case is None:
+                continue
+            deformed = case.record["deformation"] is not None
+            kwargs = {"roi": roi_box(case.record)} if deformed else {}
+            res = monai_rigidreg.register(ct.image, case.cbct, model=registrar, moving_fov=case.fov,
+                                          resample_moving=False, **kwargs)
+            m = params_to_matrix(res.params, res.center)
+            if deformed:
+                lm = np.asarray(case.record["landmarks"])
+                err = float(np.linalg.norm(transform_points(m, lm) - np.asarray(case.record["landmarks_moving"]),
+                                           axis=1).mean())
+                ok = err < case.record["rigid_floor_mm"] + 2.0
+            else:
+                err = matrix_distance_mm(m, case.matrix, tre_points(ct, case.matrix, case.fov))
+                ok = err < 2.0
+            verdict = ("false alarm" if res.flagged else "ok") if ok else (
+                "flagged failure" if res.flagged else "missed failure")
+            counts[verdict] += 1
+            s = res.details["signals"]
+            out(f"| {ct_dir.name} | {case_dir.name} | {err:.2f} | {'yes' if ok else 'no'} | {res.confidence:.2f} | "
+                f"{s['local_gain']:.4f} | {s['swap_tre_mm']:.2f} | {res.details['start']} | {verdict} |")
+    out("\n" + ", ".join(f"{k}: {v}" for k, v in counts.items()))
+    if args.results is not None:
+        args.results.parent.mkdir(parents=True, exist_ok=True)
+        args.results.write_text("\n".join(out.lines) + "\n")
+
+
+if __name__ == "__main__":
+    main()
