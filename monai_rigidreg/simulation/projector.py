@@ -302,7 +302,10 @@ def cone_backproject(
                 w[k] = (sod / big_u) ** 2
             n = len(batch)
             smp = F.grid_sample(q[b0 : b0 + n], g[:n], mode="bilinear", padding_mode="zeros", align_corners=True)
-            acc += torch.einsum("brcz,bc->rcz", smp, w[:n])
+            # sum over the batch's views of smp[k] * w[k] (per column), in place: einsum("brcz,bc->rcz") ran as a
+            # batched matmul with copies on the CPU, 19x slower on the 128^3 CBCT's chunks (1.6 s of 7.5 s)
+            for k in range(n):
+                acc.addcmul_(smp[k], w[k][None, :, None])
     vols = out.view(nch, nx, ny, nz)
     total = vols[0]
     for r in range(1, nch):
