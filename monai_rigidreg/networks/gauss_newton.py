@@ -146,7 +146,7 @@ def gauss_newton_align(
             much of a step the next residual actually takes back: ``a = (d_k - d_{k+1}) . s_k / |s_k|^2`` with ``d``
             the Gauss-Newton steps and ``s`` the applied ones. Where the CBCT's features have less contrast than
             the CT's (blur, noise), ``J^T J`` from the CT over-estimates the curvature and every step covers only a
-            fraction ``a`` (measured about 0.3) of the remaining error: the iteration contracts linearly by
+            fraction ``a`` of the remaining error: the iteration contracts linearly by
             ``1 - a`` per step. The scaled steps keep the same fixed point and reach it in fewer steps.
 
     Returns:
