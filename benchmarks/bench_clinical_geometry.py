@@ -193,7 +193,8 @@ def run_method(method: str, ct: Any, case: Any, registrar: Any, roi_supported: b
         res = monai_rigidreg.register(ct.image, case.cbct, model=registrar, moving_fov=case.fov,
                                       resample_moving=False, **kwargs)
         params = np.asarray(res.params, dtype=np.float64)
-        out.update(confidence=float(res.confidence), flagged=bool(res.flagged), roi=bool(kwargs))
+        out.update(confidence=float(res.confidence), flagged=bool(res.flagged), roi=bool(kwargs),
+                   details=res.details)
         if not np.allclose(np.asarray(res.center), c, atol=1e-3):
             from monai_rigidreg.geometry import recenter_params
 

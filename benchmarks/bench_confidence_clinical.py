@@ -30,7 +30,7 @@ import monai_rigidreg  # noqa: E402  (first: its thread policy applies before to
 # isort: split
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from bench_clinical_geometry import roi_box  # noqa: E402
+from bench_clinical_geometry import case_errors, is_success, run_method  # noqa: E402
 from bench_common import Tee, find_cts  # noqa: E402
 
 
@@ -44,8 +44,6 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from monai_rigidreg.confidence import CONFIDENCE_THRESHOLD, LOCAL_GAIN_LIMIT
-    from monai_rigidreg.geometry import params_to_matrix, transform_points
-    from monai_rigidreg.global_init import matrix_distance_mm
     from monai_rigidreg.simulation.clinical import load_clinical_case, load_planning_ct, tre_points
 
     out = Tee()
@@ -67,25 +65,21 @@ def main() -> None:
             case = load_clinical_case(case_dir)
             if case is None:
                 continue
-            deformed = case.record["deformation"] is not None
-            kwargs = {"roi": roi_box(case.record)} if deformed else {}
-            res = monai_rigidreg.register(ct.image, case.cbct, model=registrar, moving_fov=case.fov,
-                                          resample_moving=False, **kwargs)
-            m = params_to_matrix(res.params, res.center)
-            if deformed:
-                lm = np.asarray(case.record["landmarks"])
-                err = float(np.linalg.norm(transform_points(m, lm) - np.asarray(case.record["landmarks_moving"]),
-                                           axis=1).mean())
-                ok = err < case.record["rigid_floor_mm"] + 2.0
-            else:
-                err = matrix_distance_mm(m, case.matrix, tre_points(ct, case.matrix, case.fov))
-                ok = err < 2.0
-            verdict = ("false alarm" if res.flagged else "ok") if ok else (
-                "flagged failure" if res.flagged else "missed failure")
+            # registered and scored as bench_clinical_geometry.py does (the deformed pairs with their ROI box)
+            rec = case.record
+            res = run_method("network", ct, case, registrar, roi_supported=True)
+            res.update(case_errors(res["params"], rec, tre_points(ct, case.matrix, case.fov)))
+            lm = np.asarray(rec["landmarks"]).reshape(-1, 3)
+            row = {"deformed": rec["deformation"] is not None, "results": {"network": res},
+                   "floor": float(rec["rigid_floor_mm"]) if len(lm) >= 3 else float("nan")}
+            ok = is_success(row, "network")
+            err = res["landmark"] if row["deformed"] else res["tre"]
+            verdict = ("false alarm" if res["flagged"] else "ok") if ok else (
+                "flagged failure" if res["flagged"] else "missed failure")
             counts[verdict] += 1
-            s = res.details["signals"]
-            out(f"| {ct_dir.name} | {case_dir.name} | {err:.2f} | {'yes' if ok else 'no'} | {res.confidence:.2f} | "
-                f"{s['local_gain']:.4f} | {s['swap_tre_mm']:.2f} | {res.details['start']} | {verdict} |")
+            s = res["details"]["signals"]
+            out(f"| {ct_dir.name} | {case_dir.name} | {err:.2f} | {'yes' if ok else 'no'} | {res['confidence']:.2f} | "
+                f"{s['local_gain']:.4f} | {s['swap_tre_mm']:.2f} | {res['details']['start']} | {verdict} |")
     out("\n" + ", ".join(f"{k}: {v}" for k, v in counts.items()))
     if args.results is not None:
         args.results.parent.mkdir(parents=True, exist_ok=True)

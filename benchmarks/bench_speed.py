@@ -92,14 +92,14 @@ def make_pairs(ct_path: Path, folder: Path, n: int, seed: int) -> list[Path]:
     return out
 
 
-def wall(cmd: list[str], repeats: int, env: dict[str, str] | None = None, before=None) -> float:
+def wall(cmd: list[str], repeats: int, before=None) -> float:
     """Median wall seconds of a command (``before()`` runs untimed ahead of each repeat)."""
     times = []
     for _ in range(repeats):
         if before is not None:
             before()
         t = time.perf_counter()
-        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+        subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         times.append(time.perf_counter() - t)
     return float(np.median(times))
 
@@ -108,44 +108,46 @@ def load_text() -> str:
     return " ".join(f"{v:.2f}" for v in os.getloadavg())
 
 
-def in_process(registrar, ct: sitk.Image, cases: list[Path], repeats: int = 1) -> list[dict]:
-    """The default path on every case (after one warm-up call): seconds, stage seconds, TRE."""
+def load_case(case_dir: Path) -> tuple[dict, sitk.Image, np.ndarray]:
+    """A pair's ground-truth record, its CBCT (float32) and the CT body points its TRE is measured on."""
+    record = json.loads((case_dir / "case.json").read_text())
+    cbct = sitk.ReadImage(str(case_dir / "cbct.nii.gz"), sitk.sitkFloat32)
+    return record, cbct, np.load(case_dir / "tre_points.npy")
+
+
+def tre_mm(params: np.ndarray, center: np.ndarray, record: dict, points: np.ndarray) -> float:
+    """Mean distance (mm) at ``points`` between the estimate (about ``center``) and the ground truth."""
     from monai_rigidreg.geometry import params_to_matrix
     from monai_rigidreg.global_init import matrix_distance_mm
 
+    return matrix_distance_mm(params_to_matrix(params, center), np.asarray(record["matrix"]), points)
+
+
+def in_process(registrar, ct: sitk.Image, cases: list[Path]) -> list[dict]:
+    """The default path on every case (after one warm-up call): seconds, stage seconds, TRE."""
     rows = []
-    first = sitk.ReadImage(str(cases[0] / "cbct.nii.gz"), sitk.sitkFloat32)
-    monai_rigidreg.register(ct, first, model=registrar)  # warm-up: allocator, FFT plans, caches
+    monai_rigidreg.register(ct, load_case(cases[0])[1], model=registrar)  # warm-up: allocator, FFT plans, caches
     for case_dir in cases:
-        rec = json.loads((case_dir / "case.json").read_text())
-        cbct = sitk.ReadImage(str(case_dir / "cbct.nii.gz"), sitk.sitkFloat32)
-        pts = np.load(case_dir / "tre_points.npy")
-        for _ in range(repeats):
-            t = time.perf_counter()
-            r = monai_rigidreg.register(ct, cbct, model=registrar)
-            dt = time.perf_counter() - t
-            tre = matrix_distance_mm(params_to_matrix(r.params, r.center), np.asarray(rec["matrix"]), pts)
-            rows.append({"case": case_dir.name, "time_s": dt, "stages": dict(r.timings), "tre": tre,
-                         "flagged": bool(r.flagged)})
+        record, cbct, points = load_case(case_dir)
+        t = time.perf_counter()
+        r = monai_rigidreg.register(ct, cbct, model=registrar)
+        dt = time.perf_counter() - t
+        rows.append({"case": case_dir.name, "time_s": dt, "stages": dict(r.timings),
+                     "tre": tre_mm(r.params, r.center, record, points), "flagged": bool(r.flagged)})
     return rows
 
 
 def elastix_rows(ct: sitk.Image, cases: list[Path]) -> list[dict]:
     from monai_rigidreg.classical import register_elastix
-    from monai_rigidreg.geometry import params_to_matrix
-    from monai_rigidreg.global_init import matrix_distance_mm
 
     rows = []
     for case_dir in cases:
-        rec = json.loads((case_dir / "case.json").read_text())
-        cbct = sitk.ReadImage(str(case_dir / "cbct.nii.gz"), sitk.sitkFloat32)
+        record, cbct, points = load_case(case_dir)
         fov = sitk.ReadImage(str(case_dir / "cbct_fov.nii.gz"))
         t = time.perf_counter()
         res = register_elastix(ct, cbct, moving_mask=fov)
         dt = time.perf_counter() - t
-        pts = np.load(case_dir / "tre_points.npy")
-        tre = matrix_distance_mm(params_to_matrix(res.params, res.center), np.asarray(rec["matrix"]), pts)
-        rows.append({"case": case_dir.name, "time_s": dt, "tre": tre})
+        rows.append({"case": case_dir.name, "time_s": dt, "tre": tre_mm(res.params, res.center, record, points)})
     return rows
 
 
@@ -156,8 +158,7 @@ def worker(cases_file: Path) -> None:
     ct = sitk.ReadImage(json.loads((cases[0] / "case.json").read_text())["fixed"], sitk.sitkFloat32)
     while True:
         for case_dir in cases:
-            monai_rigidreg.register(ct, sitk.ReadImage(str(case_dir / "cbct.nii.gz"), sitk.sitkFloat32),
-                                    model=registrar)
+            monai_rigidreg.register(ct, load_case(case_dir)[1], model=registrar)
 
 
 def summarize(out: Tee, name: str, rows: list[dict], ref: float | None = None) -> float:

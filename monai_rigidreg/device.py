@@ -9,6 +9,7 @@ package is imported, see ``monai_rigidreg/__init__.py``).
 
 from __future__ import annotations
 
+import SimpleITK as sitk
 import torch
 
 from monai_rigidreg.errors import InputError
@@ -49,8 +50,6 @@ def set_cpu_threads(threads: int | None) -> int:
         return torch.get_num_threads()
     if int(threads) < 1:
         raise InputError(f"threads must be at least 1, got {threads}")
-    import SimpleITK as sitk
-
     torch.set_num_threads(int(threads))
     sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(int(threads))
     return torch.get_num_threads()

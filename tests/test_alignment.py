@@ -334,5 +334,6 @@ def test_stage_applies_tolerance_and_secant_at_inference_only():
     with torch.enable_grad():  # training: the same plain steps, whatever the settings
         c, _ = fast(moving.clone().requires_grad_(True), fixed, start)
     torch.testing.assert_close(c.detach(), a)
-    with pytest.raises(ValueError, match="tolerance"):
-        GaussNewtonStage((3.0, 3.0, 3.0), tolerance=(0.0, 0.01))
+    for bad in [(0.0, 0.01), (0.01,), (0.01, 0.01, 0.01)]:
+        with pytest.raises(ValueError, match="tolerance"):
+            GaussNewtonStage((3.0, 3.0, 3.0), tolerance=bad)

@@ -378,9 +378,9 @@ class GaussNewtonStage(nn.Module):
     ) -> None:
         super().__init__()
         self.secant = bool(secant)
-        self.tolerance = None if tolerance is None else (float(tolerance[0]), float(tolerance[1]))
-        if self.tolerance is not None and (len(tolerance) != 2 or min(self.tolerance) <= 0):
+        if tolerance is not None and (len(tolerance) != 2 or min(float(v) for v in tolerance) <= 0):
             raise ValueError(f"tolerance must be (mm, degrees) > 0, got {tolerance}")
+        self.tolerance = None if tolerance is None else (float(tolerance[0]), float(tolerance[1]))
         self.iterations = tuple(int(i) for i in iterations)
         self.levels = tuple(int(v) for v in levels)
         if len(self.iterations) != len(self.levels):
