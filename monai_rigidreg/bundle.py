@@ -14,6 +14,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from monai_rigidreg.bundle_config import open_config
 from monai_rigidreg.errors import InputError
 
 __all__ = ["DEFAULT_BUNDLE_NAME", "default_bundle_path", "load_bundle_network", "bundle_settings",
@@ -40,16 +41,14 @@ def default_bundle_path() -> Path:
     raise InputError(f"the shipped bundle {DEFAULT_BUNDLE_NAME!r} was not found; pass a bundle directory")
 
 
-def _parser(bundle: Path, config: str = "inference.json"):
-    # imported here: this module serves the command line's parser (train --help), and importing MONAI costs
-    # seconds (python -c 'import monai' 1-4 s on 2 cores) where the package's own import needs only torch
-    from monai.bundle import ConfigParser
-
+def _parser(bundle: Path, config: str = "inference.json", keys: tuple[str, ...] = SETTING_KEYS) -> Any:
+    """The bundle's config reader: :class:`~monai_rigidreg.bundle_config.PlainConfig` when ``keys`` use only
+    literals, ``@`` references and ``_target_`` (the shipped bundle: no MONAI import, which costs seconds), else
+    MONAI's ``ConfigParser``; ``bundle_root`` set to the bundle directory either way."""
     cfg = bundle / "configs" / config
     if not cfg.is_file():
         raise InputError(f"not a MONAI bundle: {cfg} is missing", bundle)
-    parser = ConfigParser()
-    parser.read_config(str(cfg))
+    parser = open_config(cfg, keys)
     parser["bundle_root"] = str(bundle)
     return parser
 
@@ -81,7 +80,7 @@ def load_bundle_network(
     b = default_bundle_path() if bundle is None else Path(bundle)
     if not b.is_dir():
         raise InputError("bundle directory not found", b)
-    parser = _parser(b)
+    parser = _parser(b, keys=(*SETTING_KEYS, "network_def"))
     net = parser.get_parsed_content("network_def")
     w = Path(weights) if weights is not None else b / "models" / "model.pt"
     if not w.is_file():

@@ -32,7 +32,7 @@ import torch
 from monai_rigidreg.body import without_couch
 from monai_rigidreg.confidence import cylindrical_fov_mask, fov_ncc
 from monai_rigidreg.geometry import Grid, grid_points, invert_matrix, params_to_matrix, transform_points
-from monai_rigidreg.transforms.grid import antialias_for_grid, crop_to_grid, resample_to_grid, sitk_on_grid, sitk_tensor
+from monai_rigidreg.grid_sampling import antialias_for_grid, crop_to_grid, resample_to_grid, sitk_on_grid, sitk_tensor
 
 __all__ = ["SearchCandidate", "global_search", "masked_ncc_map", "volume_spectra", "DEFAULT_ROTATIONS_DEG",
            "matrix_distance_mm", "fov_similarity", "SEARCH_AGREE_MM"]

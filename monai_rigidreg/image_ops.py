@@ -5,7 +5,8 @@ One Gaussian kernel builder (:func:`gaussian_kernel_1d`), one separable filter o
 convolution :func:`local_mean`, the box erosion :func:`erode`, :func:`gradient_magnitude`, the average-pooling
 :func:`pyramid` and the masked global correlation :func:`masked_ncc`.
 
-This module depends on torch, numpy, MONAI and :mod:`monai_rigidreg.geometry` only (never on the networks, the
+This module depends on torch, numpy and :mod:`monai_rigidreg.geometry` only (not on MONAI: the register path
+imports it, see :mod:`monai_rigidreg.grid_sampling`) (never on the networks, the
 losses or the registrar), so any of those can use it. Every operation is differentiable with respect to its image
 inputs; kernels follow the dtype and device of the input (the speed measurements are CPU ones).
 
@@ -20,7 +21,6 @@ from typing import Literal
 
 import torch
 import torch.nn.functional as F
-from monai.networks.layers.convutils import gaussian_1d
 
 from monai_rigidreg.geometry import Grid
 
@@ -56,6 +56,15 @@ suffer most and the convolution can win from about 30 taps: the benchmark prints
 _MODES = ("zeros", "replicate", "valid")
 
 
+def _erf_taps(sigma32: torch.Tensor, tail: int) -> torch.Tensor:
+    """``[2 * tail + 1]`` float32 Gaussian mass of the unit intervals about the integer offsets ``-tail..tail``:
+    the arithmetic of MONAI's ``gaussian_1d(approx="erf")`` (checked value for value in ``tests/test_image_ops.py``),
+    written here so that the register path does not import MONAI (see :mod:`monai_rigidreg.grid_sampling`)."""
+    x = torch.arange(-tail, tail + 1, dtype=torch.float32)
+    t = 0.70710678 / torch.abs(sigma32)
+    return (0.5 * ((t * (x + 0.5)).erf() - (t * (x - 0.5)).erf())).clamp(min=0)
+
+
 def gaussian_kernel_1d(
     sigma: float,
     truncated: float = 4.0,
@@ -89,15 +98,18 @@ def gaussian_kernel_1d(
     if size is not None and int(size) < 1:
         raise ValueError(f"size must be >= 1, got {size}")
     if approx == "erf":
+        sigma32 = torch.tensor(sigma, dtype=torch.float32)
         if size is None:
-            kernel = gaussian_1d(torch.tensor(sigma), truncated=truncated, approx="erf", normalize=normalize)
+            if not truncated > 0:
+                raise ValueError(f"truncated must be > 0, got {truncated}")
+            kernel = _erf_taps(sigma32, int(max(float(sigma32) * truncated, 0.5) + 0.5))
+            kernel = kernel / kernel.sum() if normalize else kernel
         elif int(size) % 2 == 0:
             raise ValueError(f"an 'erf' kernel has an odd size, got {size}")
         else:
             # MONAI's tail is round(sigma * truncated): ask for the radius we want (at least 1, see below)
             radius = max(1, (int(size) - 1) // 2)
-            sigma32 = torch.tensor(sigma)
-            kernel = gaussian_1d(sigma32, truncated=radius / float(sigma32), approx="erf", normalize=False)
+            kernel = _erf_taps(sigma32, radius)
             if int(size) == 1:  # the central tap only
                 kernel = kernel[1:2]
             kernel = kernel / kernel.sum() if normalize else kernel

@@ -15,7 +15,6 @@ import nibabel as nib
 import numpy as np
 import SimpleITK as sitk
 import torch
-from monai.data import MetaTensor
 
 from monai_rigidreg.dicom_series import (  # re-exported: the DICOM reading lives there
     check_distinct_inputs,
@@ -340,6 +339,8 @@ def sitk_to_metatensor(image: sitk.Image, dtype: torch.dtype = torch.float32, me
     }
     if meta:
         m.update(meta)
+    from monai.data import MetaTensor  # here: reading and writing files must not import MONAI (grid_sampling)
+
     return MetaTensor(data, affine=affine, meta=m)
 
 

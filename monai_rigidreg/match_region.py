@@ -28,7 +28,7 @@ import torch
 
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import Grid
-from monai_rigidreg.transforms.grid import sitk_on_grid
+from monai_rigidreg.grid_sampling import sitk_on_grid
 
 __all__ = ["MATCH_MODES", "parse_roi", "match_weight", "roi_center", "weight_on_grid"]
 

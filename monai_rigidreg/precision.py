@@ -25,10 +25,10 @@ import SimpleITK as sitk
 import torch
 
 from monai_rigidreg.geometry import Grid, invert_matrix, transform_points
+from monai_rigidreg.grid_sampling import sitk_on_grid
 from monai_rigidreg.image_ops import erode
 from monai_rigidreg.match_region import weight_on_grid
 from monai_rigidreg.networks.gauss_newton import alignment_features, gauss_newton_align
-from monai_rigidreg.transforms.grid import sitk_on_grid
 
 __all__ = ["native_grid", "refine_native"]
 

@@ -24,7 +24,6 @@ from typing import Any
 import numpy as np
 import SimpleITK as sitk
 import torch
-from monai.data import MetaTensor
 from torch import nn
 
 from monai_rigidreg.body import BodyMaskCache, without_couch
@@ -52,13 +51,13 @@ from monai_rigidreg.geometry import (
     transform_points,
 )
 from monai_rigidreg.global_init import SEARCH_AGREE_MM, fov_similarity, global_search, matrix_distance_mm
+from monai_rigidreg.grid_sampling import normalize_hu, sitk_on_grid
 from monai_rigidreg.io import as_image, check_distinct_inputs, grids_overlap, resample
 from monai_rigidreg.match_region import RoiLike, match_weight, parse_roi, weight_on_grid
 from monai_rigidreg.network_grid import NetworkGridSpec
 from monai_rigidreg.networks import cascade_register
 from monai_rigidreg.precision import refine_native
 from monai_rigidreg.provenance import bundle_record
-from monai_rigidreg.transforms.grid import NormalizeHU, ResampleToNetworkGrid, sitk_on_grid
 
 __all__ = ["RegistrationResult", "RigidRegistrar", "register", "check_intensities", "fine_stage_switch"]
 
@@ -218,8 +217,7 @@ class RigidRegistrar:
         self._lock = threading.RLock()
         self._bodies = BodyMaskCache()  # the CT's body mask, computed once per planning CT
         self.source: dict[str, Any] = {}  # the bundle and weights it came from (from_bundle), for the audit trail
-        self._resampler = ResampleToNetworkGrid(self.network_size, self.network_spacing, padding_value=hu_range[0])
-        self._normalize = NormalizeHU(a_min=hu_range[0], a_max=hu_range[1])
+        self.antialias = True  # as ResampleToNetworkGrid's default, the training preprocessing
 
     @property
     def network_size(self) -> tuple[int, int, int]:
@@ -259,10 +257,11 @@ class RigidRegistrar:
 
     def preprocess(self, image: sitk.Image, grid: Grid, matrix: np.ndarray | None = None) -> torch.Tensor:
         """``[1, x, y, z]`` normalized plain tensor of ``image`` on the network grid (the training preprocessing:
-        :class:`~monai_rigidreg.transforms.ResampleToNetworkGrid` then :class:`~monai_rigidreg.transforms.NormalizeHU`);
+        :class:`~monai_rigidreg.transforms.ResampleToNetworkGrid` then :class:`~monai_rigidreg.transforms.NormalizeHU`,
+        through their MONAI-free functions in :mod:`~monai_rigidreg.grid_sampling`);
         ``matrix``: sample ``image`` through this 4x4 grid -> image transform (LPS mm; a start estimate)."""
-        out = self._normalize(self._on_grid(image, grid, "bilinear", self.hu_range[0], matrix))
-        return (out.as_tensor() if isinstance(out, MetaTensor) else out).float()
+        out = self._on_grid(image, grid, "bilinear", self.hu_range[0], matrix)
+        return normalize_hu(out, self.hu_range[0], self.hu_range[1]).float()
 
     def _on_grid(self, image: sitk.Image, grid: Grid, mode: str, padding_value: float,
                  matrix: np.ndarray | None = None) -> torch.Tensor:
@@ -273,7 +272,7 @@ class RigidRegistrar:
         (``benchmarks/bench_inference_speed.py``: both volumes in 0.04 s instead of 0.20 s through
         ``sitk_to_metatensor`` and the MONAI transforms; the forward pass 0.105 s instead of 0.138 s).
         """
-        return sitk_on_grid(image, grid, mode, padding_value, antialias=self._resampler.antialias, matrix=matrix)
+        return sitk_on_grid(image, grid, mode, padding_value, antialias=self.antialias, matrix=matrix)
 
     @torch.no_grad()
     def estimate(self, moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, steps: int | None = None,

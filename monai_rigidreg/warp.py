@@ -1,7 +1,10 @@
 """Differentiable rigid resampling of volumes in physical space (the torch twin of ``SimpleITK.Resample``).
 
-The normalized ``theta`` comes from :func:`monai_rigidreg.geometry.normalized_theta`; sampling is done by
-MONAI's :class:`monai.networks.layers.AffineTransform` (``normalized=True``, ``align_corners=True``).
+The normalized ``theta`` comes from :func:`monai_rigidreg.geometry.normalized_theta`; sampling is torch's
+``affine_grid`` + ``grid_sample`` with ``align_corners=True``: what MONAI's
+:class:`monai.networks.layers.AffineTransform` (``normalized=True``, ``reverse_indexing=False``) computes, called
+directly so that the register path does not import MONAI (see :mod:`monai_rigidreg.grid_sampling`);
+``tests/test_warp.py`` checks the two agree value for value.
 """
 
 from __future__ import annotations
@@ -9,22 +12,14 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from monai.networks.layers import AffineTransform
+import torch.nn.functional as F
 
 from monai_rigidreg.geometry import Grid, normalized_theta, params_to_matrix_torch
 
 __all__ = ["warp_volume", "warp_volume_params"]
 
-_SAMPLERS: dict[tuple[str, str], AffineTransform] = {}
-
-
-def _sampler(mode: str, padding_mode: str) -> AffineTransform:
-    key = (mode, padding_mode)
-    if key not in _SAMPLERS:
-        _SAMPLERS[key] = AffineTransform(
-            normalized=True, mode=mode, padding_mode=padding_mode, align_corners=True, reverse_indexing=False
-        )
-    return _SAMPLERS[key]
+MODES = ("bilinear", "nearest")
+PADDING_MODES = ("zeros", "border", "reflection")
 
 
 def warp_volume(
@@ -57,9 +52,13 @@ def warp_volume(
     expected = tuple(moving_grid.size) if array_order == "xyz" else tuple(moving_grid.size)[::-1]
     if tuple(moving.shape[2:]) != expected:
         raise ValueError(f"moving spatial shape {tuple(moving.shape[2:])} does not match its grid {expected}")
+    if mode not in MODES or padding_mode not in PADDING_MODES:
+        raise ValueError(f"mode must be one of {MODES} and padding_mode one of {PADDING_MODES}, got {mode!r}, "
+                         f"{padding_mode!r}")
     theta = normalized_theta(matrix.to(torch.float64), fixed_grid, moving_grid, array_order).to(moving.dtype)
     out_size = tuple(fixed_grid.size) if array_order == "xyz" else tuple(fixed_grid.size)[::-1]
-    return _sampler(mode, padding_mode)(moving, theta, spatial_size=out_size)
+    sample_at = F.affine_grid(theta[:, :3], [moving.shape[0], moving.shape[1], *out_size], align_corners=True)
+    return F.grid_sample(moving.contiguous(), sample_at, mode=mode, padding_mode=padding_mode, align_corners=True)
 
 
 def warp_volume_params(

@@ -237,3 +237,79 @@ def test_train_with_default_folders_leaves_the_installed_weights_alone_and_runs_
                           text=True, encoding="utf-8", errors="replace", timeout=120, env=env)
     assert proc.returncode == 2 and "inside the installed monai-rigidreg package" in proc.stderr
     assert "Traceback" not in proc.stderr and _sha256(shipped) == before
+
+
+# -- the config reader of the register path (no MONAI import) ------------------------------------------------------
+
+
+def test_plain_reader_builds_what_monai_config_parser_builds():
+    """The shipped inference.json through PlainConfig and through MONAI's ConfigParser: the same settings, the same
+    network (module tree, weights loaded strictly, identical estimate on a random pair)."""
+    import torch
+    from monai.bundle import ConfigParser
+
+    from monai_rigidreg.bundle import SETTING_KEYS, load_bundle_network
+    from monai_rigidreg.bundle_config import PlainConfig, open_config
+
+    cfg = BUNDLE / "configs" / "inference.json"
+    plain = open_config(cfg, (*SETTING_KEYS, "network_def"))
+    assert isinstance(plain, PlainConfig)
+    monai_parser = ConfigParser()
+    monai_parser.read_config(str(cfg))
+    for key in SETTING_KEYS:
+        assert plain.get_parsed_content(key) == monai_parser.get_parsed_content(key)
+    ours, _ = load_bundle_network()
+    theirs = monai_parser.get_parsed_content("network_def")
+    assert repr(ours) == repr(theirs)
+    theirs.load_state_dict(ours.state_dict())  # strict: the same keys and shapes
+    theirs.eval()
+    gen = torch.Generator().manual_seed(3)
+    fixed, moving = torch.rand(1, 1, 64, 64, 64, generator=gen), torch.rand(1, 1, 64, 64, 64, generator=gen)
+    with torch.no_grad():
+        torch.testing.assert_close(ours.forward_pair(moving, fixed), theirs.forward_pair(moving, fixed))
+
+
+def test_plain_reader_subset_and_fallback_to_monai(tmp_path):
+    """References with nested keys resolve; MONAI syntax outside the subset (expressions, component keys, circular
+    or missing references, YAML) is refused by PlainConfig, and open_config then reads the file with MONAI."""
+    from monai.bundle import ConfigParser
+
+    from monai_rigidreg.bundle_config import NotPlain, PlainConfig, open_config
+
+    cfg = tmp_path / "c.json"
+    cfg.write_text(json.dumps({
+        "size": [4, 5], "first": "@size#0", "last": "@size#-1", "nested": {"a": {"b": "@first"}},
+        "grid": {"_target_": "monai_rigidreg.geometry.Grid.centered", "size": [2, 3, 4], "spacing": "@nested#a#c"},
+        "expr": "$1 + 1", "disabled": {"_target_": "dict", "_disabled_": True}, "loop": "@loop2", "loop2": "@loop",
+        "missing": "@nowhere"}))
+    cfg.write_text(cfg.read_text().replace('"spacing": "@nested#a#c"', '"spacing": [1.0, 2.0, 3.0]'))
+    plain = PlainConfig(cfg)
+    assert plain.get_parsed_content("first") == 4 and plain.get_parsed_content("last") == 5
+    assert plain.get_parsed_content("nested#a#b") == 4
+    grid = plain.get_parsed_content("grid")
+    assert grid.size == (2, 3, 4) and grid.spacing == (1.0, 2.0, 3.0)
+    assert "nested#a" in plain and "nested#z" not in plain and "size#2" not in plain
+    for key in ("expr", "disabled", "loop", "missing"):
+        with pytest.raises(NotPlain):
+            plain.get_parsed_content(key)
+    assert isinstance(open_config(cfg, ("first", "grid")), PlainConfig)
+    fallback = open_config(cfg, ("first", "expr"))
+    assert isinstance(fallback, ConfigParser) and fallback.get_parsed_content("expr") == 2
+    yaml_cfg = tmp_path / "c.yaml"
+    yaml_cfg.write_text("size: [4, 5]\n")
+    with pytest.raises(NotPlain):
+        PlainConfig(yaml_cfg)
+    assert isinstance(open_config(yaml_cfg, ("size",)), ConfigParser)
+
+
+def test_bundle_with_an_expression_setting_loads_through_monai(tmp_path):
+    """A user's bundle whose setting is a MONAI expression still loads (MONAI's parser), with its value."""
+    from monai_rigidreg.bundle import load_bundle_network
+
+    bundle = tmp_path / "b"
+    shutil.copytree(BUNDLE, bundle, ignore=shutil.ignore_patterns("eval*", "runs"))
+    cfg = json.loads((bundle / "configs" / "inference.json").read_text())
+    cfg["cascade_steps"] = "$1 + 1"
+    (bundle / "configs" / "inference.json").write_text(json.dumps(cfg))
+    _, settings = load_bundle_network(bundle)
+    assert settings["cascade_steps"] == 2

@@ -245,3 +245,43 @@ def test_training_from_scratch_reduces_the_error_on_its_stream():
         opt.step()
     after = error()
     assert after < 0.5 * before, (before, after)
+
+
+@pytest.mark.parametrize("norm", ["INSTANCE", "BATCH", ("INSTANCE", {"affine": True})])
+@pytest.mark.parametrize("shape", [(1, 16, 2, 2), (16, 32, 2, 3), (32, 32, 1, 2), (16, 8, 1, 1)])
+def test_residual_stage_is_monai_residual_unit(norm, shape):
+    """ResidualStage3d has MONAI ResidualUnit's state-dict keys and, with the same weights, its output (stride 2 and
+    1, channels changed or kept, one or more subunits, instance/batch norm, train and eval mode)."""
+    from monai.networks.blocks import ResidualUnit
+
+    from monai_rigidreg.networks.blocks import ResidualStage3d
+
+    c_in, c_out, stride, subunits = shape
+    torch.manual_seed(0)
+    ref = ResidualUnit(spatial_dims=3, in_channels=c_in, out_channels=c_out, strides=stride, kernel_size=3,
+                       subunits=subunits, act="PRELU", norm=norm)
+    with torch.no_grad():  # PReLU slopes and norm affines away from their defaults, so a mix-up would show
+        for name, p in ref.named_parameters():
+            if name.endswith("A.weight") or ".N." in name:
+                p.uniform_(0.1, 0.9)
+    ours = ResidualStage3d(c_in, c_out, stride=stride, subunits=subunits, norm=norm)
+    assert list(ours.state_dict()) == list(ref.state_dict())
+    ours.load_state_dict(ref.state_dict())
+    x = torch.randn(2, c_in, 9, 8, 7, generator=torch.Generator().manual_seed(1))
+    for train in (True, False):
+        ref.train(train)
+        ours.train(train)
+        out = ours(x)
+        assert out.shape == (2, c_out, *(-(-n // stride) for n in (9, 8, 7)))
+        torch.testing.assert_close(out, ref(x), atol=1e-6, rtol=1e-6)
+    with pytest.raises(ValueError, match="norm"):
+        ResidualStage3d(1, 2, norm="GROUP")
+
+
+def test_shipped_weights_load_into_correlation_net():
+    """The shipped checkpoint (trained with MONAI's ResidualUnit) loads with strict keys into the network the
+    bundle builds."""
+    from monai_rigidreg.bundle import load_bundle_network
+
+    net, _ = load_bundle_network()
+    assert any(".conv.unit0.adn.A.weight" in k for k in net.state_dict())

@@ -55,8 +55,8 @@ def _rand(*shape: int, seed: int = 0, dtype: torch.dtype = torch.float32) -> tor
 # -- kernels ---------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("sigma", [0.1, 0.7, 1.5, 4.2])
-@pytest.mark.parametrize("truncated", [3.0, 4.0])
+@pytest.mark.parametrize("sigma", [0.1, 0.3, 0.7, 1.5, 2.0, 4.2, 6.35])
+@pytest.mark.parametrize("truncated", [1.0, 3.0, 4.0])
 @pytest.mark.parametrize("normalize", [False, True])
 def test_erf_kernel_is_monai_gaussian_1d(sigma, truncated, normalize):
     ref = gaussian_1d(torch.tensor(sigma), truncated=truncated, approx="erf", normalize=normalize)

@@ -1,4 +1,5 @@
-"""The torch warp (geometry.normalized_theta + MONAI AffineTransform) against SimpleITK.Resample."""
+"""The torch warp (geometry.normalized_theta + torch affine_grid/grid_sample) against SimpleITK.Resample and MONAI's
+AffineTransform."""
 
 from __future__ import annotations
 
@@ -78,3 +79,27 @@ def test_warp_rejects_bad_shapes(moving_image):
         warp_volume(torch.zeros(1, 1, 5, 5, 5), torch.eye(4)[None], grid, grid)
     with pytest.raises(ValueError, match=r"\[B, C, D, H, W\]"):
         warp_volume(torch.zeros(5, 5, 5), torch.eye(4)[None], grid, grid)
+
+
+@pytest.mark.parametrize("mode", ["bilinear", "nearest"])
+@pytest.mark.parametrize("padding_mode", ["zeros", "border", "reflection"])
+def test_warp_is_monai_affine_transform(moving_image, mode, padding_mode):
+    """warp_volume samples as MONAI's AffineTransform (normalized theta, align_corners) did before it was called
+    directly: value for value, batch of two different transforms, a different output size."""
+    from monai.networks.layers import AffineTransform
+
+    from monai_rigidreg.geometry import normalized_theta
+
+    moving_grid = Grid.from_sitk(moving_image)
+    vol = torch.from_numpy(sitk.GetArrayFromImage(moving_image).transpose(2, 1, 0).copy())[None, None]
+    vol = torch.cat([vol, -2.0 * vol]).float()
+    matrix = torch.tensor(np.stack([params_to_matrix([2, -3, 1.5, 5, -4, 7], FIXED.center()),
+                                    params_to_matrix([-9, 4, 0, -2, 11, 3], FIXED.center())]))
+    got = warp_volume(vol, matrix, FIXED, moving_grid, mode=mode, padding_mode=padding_mode)
+    theta = normalized_theta(matrix, FIXED, moving_grid, "xyz").float()
+    ref = AffineTransform(normalized=True, mode=mode, padding_mode=padding_mode, align_corners=True,
+                          reverse_indexing=False)(vol, theta, spatial_size=FIXED.size)
+    assert got.shape == (2, 1, *FIXED.size)
+    assert torch.equal(got, ref)
+    with pytest.raises(ValueError, match="mode"):
+        warp_volume(vol, matrix, FIXED, moving_grid, mode="bicubic")

@@ -3,7 +3,8 @@
 Where :class:`~monai_rigidreg.networks.DualEncoderRigidNet` asks an MLP to turn a flattened feature map into six
 numbers, this network keeps the geometry explicit, so it has far less to learn:
 
-1. one shared 3D CNN encoder (MONAI ``ResidualUnit`` stages) maps the moving (CBCT) and the fixed (CT) volume to
+1. one shared 3D CNN encoder (residual stages with MONAI ``ResidualUnit``'s layout,
+   :class:`~monai_rigidreg.networks.blocks.ResidualStage3d`) maps the moving (CBCT) and the fixed (CT) volume to
    feature maps at 1/4 and 1/8 of the network grid;
 2. for every fixed cell, a cost volume (cosine similarity with the moving features: every moving cell at the
    coarse level, integer cell shifts within ``+-radius`` at the fine level) and a soft-argmax give its matched
@@ -30,10 +31,10 @@ from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
-from monai.networks.blocks import ResidualUnit
 from torch import nn
 
 from monai_rigidreg.geometry import Grid, matrix_to_params_torch
+from monai_rigidreg.networks.blocks import ResidualStage3d
 from monai_rigidreg.warp import warp_volume
 
 __all__ = ["CorrelationRigidNet", "local_cost_volume", "parabola_shifts", "weighted_rigid_fit", "SUBCELL_MODES"]
@@ -266,8 +267,7 @@ class CorrelationRigidNet(nn.Module):
         stages: list[nn.Module] = []
         c_in = self.in_channels
         for c in channels:
-            stages.append(ResidualUnit(spatial_dims=3, in_channels=c_in, out_channels=int(c), strides=2,
-                                       kernel_size=3, subunits=num_res_units, act="PRELU", norm=norm))
+            stages.append(ResidualStage3d(c_in, int(c), stride=2, subunits=num_res_units, norm=norm))
             c_in = int(c)
         self.stages = nn.ModuleList(stages)
         self.coarse = _MatchLevel(int(channels[-1]), int(feat_channels[0]), None, temperature)

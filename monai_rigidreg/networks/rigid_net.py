@@ -16,7 +16,6 @@ from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
-from monai.networks.blocks import ResidualUnit
 from torch import nn
 
 __all__ = ["DualEncoderRigidNet", "FUSIONS"]
@@ -147,6 +146,10 @@ class DualEncoderRigidNet(nn.Module):
             raise ValueError("max_translation and max_rotation must be > 0")
         self.in_channels = int(in_channels)
         self.fusion_name = fusion
+
+        # imported here, not at the top: the register path imports this package (CorrelationRigidNet) and must not
+        # pay for MONAI's import (see monai_rigidreg.networks.blocks); this network takes any MONAI act/norm/dropout
+        from monai.networks.blocks import ResidualUnit
 
         layers: list[nn.Module] = []
         c_in = self.in_channels

@@ -23,12 +23,24 @@ from monai.data.meta_obj import get_track_meta
 from monai.transforms import InvertibleTransform, MapTransform, ScaleIntensityRange, ScaleIntensityRanged
 from monai.utils import TraceKeys, convert_to_dst_type, convert_to_tensor, ensure_tuple, ensure_tuple_rep
 
-from monai_rigidreg.geometry import Grid, transform_points
-from monai_rigidreg.image_ops import gaussian_smooth
-from monai_rigidreg.transforms.utils import PaddingValue, as_matrix, grid_of, resample_physical
+from monai_rigidreg.geometry import Grid
+from monai_rigidreg.grid_sampling import (  # re-exported: the resampling itself lives there, without MONAI
+    PaddingValue,
+    antialias_for_grid,
+    antialias_sigmas,
+    crop_to_grid,
+    resample_physical,
+    resample_to_grid,
+    sitk_on_grid,
+    sitk_tensor,
+)
+from monai_rigidreg.transforms.utils import as_matrix, grid_of
 
 __all__ = [
     "network_grid",
+    "antialias_sigmas",
+    "antialias_for_grid",
+    "crop_to_grid",
     "resample_to_grid",
     "sitk_tensor",
     "sitk_on_grid",
@@ -146,96 +158,6 @@ class ResampleToNetworkGrid(InvertibleTransform):
         """Resample back onto the original grid (detail finer than the network grid is lost)."""
         transform = self.pop_transform(data)
         return _undo(self, data, transform, self.padding_value, self.padding_mode)
-
-
-def antialias_sigmas(in_grid: Grid, out_grid: Grid) -> list[float]:
-    """Per index axis of ``in_grid``, the Gaussian sigma (voxels) of :func:`antialias_for_grid`:
-    (ratio - 1) / 2 with ratio = min(out spacing) / in spacing, 0 where the input is not finer."""
-    target = float(min(out_grid.spacing))
-    return [max(0.0, (target / s - 1.0) / 2.0) for s in in_grid.spacing]
-
-
-def antialias_for_grid(img: torch.Tensor, in_grid: Grid, out_grid: Grid) -> torch.Tensor:
-    """Gaussian pre-filter of a ``[C, x, y, z]`` image on ``in_grid`` before sampling it onto a coarser
-    ``out_grid`` (sigmas of :func:`antialias_sigmas`). Returns ``img`` itself when nothing needs smoothing."""
-    sigmas = antialias_sigmas(in_grid, out_grid)
-    if max(sigmas) < 0.25:
-        return img
-    x = img.as_tensor() if isinstance(img, MetaTensor) else img
-    return gaussian_smooth(x.float() if not x.is_floating_point() else x, sigmas).to(img.dtype)
-
-
-def crop_to_grid(img: torch.Tensor, in_grid: Grid, out_grid: Grid, margin: int,
-                 matrix: np.ndarray | None = None) -> tuple[torch.Tensor, Grid]:
-    """The part of a ``[C, x, y, z]`` image on ``in_grid`` that ``out_grid`` can sample, plus ``margin`` voxels.
-
-    ``matrix``: the 4x4 physical transform (``out_grid`` point -> ``in_grid`` point, LPS mm) the sampling goes
-    through (default identity).
-
-    Returns the cropped view and its grid (same spacing and direction, shifted origin); the image itself when the
-    crop would keep (almost) everything. Sampling ``out_grid`` from the crop gives the same values as from the
-    whole image wherever a filter of radius up to ``margin`` voxels was applied first.
-    """
-    corners = np.array([[i, j, k] for i in (0, out_grid.size[0] - 1) for j in (0, out_grid.size[1] - 1)
-                        for k in (0, out_grid.size[2] - 1)], dtype=np.float64)
-    phys = transform_points(out_grid.index_to_physical(), corners)
-    if matrix is not None:
-        phys = transform_points(np.asarray(matrix, dtype=np.float64), phys)
-    idx = transform_points(np.linalg.inv(in_grid.index_to_physical()), phys)
-    lo = np.maximum(np.floor(idx.min(0)).astype(int) - 1 - margin, 0)
-    hi = np.minimum(np.ceil(idx.max(0)).astype(int) + 2 + margin, np.array(in_grid.size))
-    if np.any(hi <= lo):  # no overlap: nothing to save, the caller pads
-        return img, in_grid
-    if np.prod(hi - lo) > 0.8 * np.prod(in_grid.size):
-        return img, in_grid
-    crop = img[:, lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-    origin = tuple(float(v) for v in transform_points(in_grid.index_to_physical(), lo)[0])
-    return crop, Grid(tuple(int(v) for v in hi - lo), in_grid.spacing, origin, in_grid.direction)
-
-
-def resample_to_grid(
-    img: torch.Tensor,
-    in_grid: Grid,
-    grid: Grid,
-    mode: str = "bilinear",
-    padding_mode: str = "zeros",
-    padding_value: PaddingValue = -1000.0,
-    antialias: bool = True,
-    matrix: np.ndarray | None = None,
-) -> torch.Tensor:
-    """The resampling of :class:`ResampleToNetworkGrid` on a plain tensor: ``[C, x, y, z]`` on ``in_grid`` ->
-    ``[C, *grid.size]`` (crop to what ``grid`` covers, anti-alias with ``"bilinear"``, sample physically).
-
-    ``matrix``: optional 4x4 physical transform, ``grid`` point -> ``in_grid`` point (LPS mm; fixed -> moving when
-    ``img`` is the moving image): ``out(y) = img(matrix @ y)``, one interpolation (default identity).
-    ``img`` may be a non-contiguous view (e.g. a transposed ``SimpleITK`` array): only the cropped part is copied.
-    """
-    # only the part of the input the grid covers is filtered and sampled (a 256^3 CT for a 128 mm network grid:
-    # about 8x less smoothing work); the margin covers the Gaussian's truncation radius (4 sigma)
-    sample_grid = in_grid
-    if antialias and mode == "bilinear":
-        margin = int(np.ceil(4.0 * max(antialias_sigmas(in_grid, grid)))) + 1
-        img, sample_grid = crop_to_grid(img, in_grid, grid, margin, matrix)
-        img = antialias_for_grid(img, sample_grid, grid)
-    return resample_physical(img, np.eye(4) if matrix is None else matrix, grid, sample_grid, mode, padding_mode,
-                             padding_value)
-
-
-def sitk_tensor(image: sitk.Image) -> tuple[torch.Tensor, Grid]:
-    """``[1, x, y, z]`` float32 tensor of a SimpleITK image and its grid: the ``[z, y, x]`` array viewed as
-    ``[x, y, z]`` without a copy, so :func:`resample_to_grid` transposes only the part a smaller grid covers."""
-    if image.GetPixelID() != sitk.sitkFloat32:
-        image = sitk.Cast(image, sitk.sitkFloat32)
-    return torch.from_numpy(sitk.GetArrayFromImage(image)).permute(2, 1, 0)[None], Grid.from_sitk(image)
-
-
-def sitk_on_grid(image: sitk.Image, grid: Grid, mode: str = "bilinear", padding_value: PaddingValue = -1000.0,
-                 antialias: bool = True, matrix: np.ndarray | None = None) -> torch.Tensor:
-    """``[1, *grid.size]`` float32 plain tensor of a SimpleITK image resampled onto ``grid`` by
-    :func:`resample_to_grid` (anti-aliased only with ``"bilinear"``; ``matrix``: grid point -> image point, LPS mm)."""
-    raw, in_grid = sitk_tensor(image)
-    return resample_to_grid(raw, in_grid, grid, mode, "zeros", padding_value,
-                            antialias=antialias and mode == "bilinear", matrix=matrix)
 
 
 def _resample_and_push(

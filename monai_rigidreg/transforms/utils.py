@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from monai_rigidreg.geometry import Grid
-from monai_rigidreg.warp import warp_volume
+from monai_rigidreg.grid_sampling import PaddingValue, resample_physical  # re-exported: they live there
 
 __all__ = [
     "PaddingValue",
@@ -25,10 +25,6 @@ __all__ = [
     "ensure_range_pairs",
     "ensure_interval",
 ]
-
-PaddingValue = float | str | None
-"""Value written where a resampled voxel falls outside the input: a number (e.g. ``-1000.0`` HU), ``"min"``
-(per-channel minimum of the input) or ``None`` (use ``padding_mode`` of ``grid_sample`` as is)."""
 
 _IDENTITY_RAS = np.eye(4)
 
@@ -42,61 +38,6 @@ def grid_of(img: Any) -> Grid:
     if hasattr(img, "affine") and getattr(img, "meta", None) is not None:
         return Grid.from_metatensor(img)
     return Grid.from_affine(_IDENTITY_RAS, tuple(img.shape[-3:]), space="RAS")
-
-
-def _check_image(img: torch.Tensor) -> None:
-    if img.ndim != 4:
-        raise ValueError(f"expected a channel-first 3D image [C, x, y, z], got shape {tuple(img.shape)}")
-
-
-def resample_physical(
-    img: torch.Tensor,
-    matrix: Any,
-    out_grid: Grid,
-    in_grid: Grid,
-    mode: str = "bilinear",
-    padding_mode: str = "zeros",
-    padding_value: PaddingValue = None,
-) -> torch.Tensor:
-    """Resample a channel-first image ``[C, x, y, z]`` on ``in_grid`` onto ``out_grid``.
-
-    ``out(y) = img(matrix @ y)`` for every physical point ``y`` (LPS mm) of ``out_grid``: the semantics of
-    ``sitk.Resample(img, out_grid, T)`` with ``T`` the 4x4 ``matrix`` (thin wrapper of
-    :func:`monai_rigidreg.warp.warp_volume`).
-
-    Args:
-        img: plain tensor ``[C, x, y, z]`` (any dtype, any device).
-        matrix: 4x4 physical transform (output -> input, LPS mm).
-        out_grid: grid of the output.
-        in_grid: grid of ``img``.
-        mode: ``"bilinear"`` (trilinear) or ``"nearest"``.
-        padding_mode: ``grid_sample`` padding mode, used when ``padding_value`` is ``None``.
-        padding_value: constant written outside the input (see :data:`PaddingValue`); overrides ``padding_mode``.
-
-    Returns:
-        ``[C, *out_grid.size]`` tensor, same dtype and device as ``img`` (integer inputs are rounded back).
-    """
-    _check_image(img)
-    orig_dtype = img.dtype
-    cdtype = orig_dtype if orig_dtype in (torch.float32, torch.float64) else torch.float32
-    x = img.to(cdtype)
-    shift: torch.Tensor | float | None = None
-    if padding_value is not None:
-        if isinstance(padding_value, str):
-            if padding_value != "min":
-                raise ValueError(f"padding_value must be a number, 'min' or None, got {padding_value!r}")
-            shift = x.amin(dim=(1, 2, 3), keepdim=True)
-        else:
-            shift = float(padding_value)
-        x = x - shift
-        padding_mode = "zeros"
-    m = torch.as_tensor(np.asarray(matrix, dtype=np.float64), dtype=torch.float64, device=x.device).unsqueeze(0)
-    out = warp_volume(x.unsqueeze(0), m, out_grid, in_grid, mode=mode, padding_mode=padding_mode)[0]
-    if shift is not None:
-        out = out + shift
-    if not orig_dtype.is_floating_point:
-        out = out.round()
-    return out.to(orig_dtype)
 
 
 def as_matrix(value: Any) -> np.ndarray:

@@ -1,0 +1,82 @@
+"""The residual encoder stage of :class:`~monai_rigidreg.networks.CorrelationRigidNet`, without MONAI.
+
+:class:`ResidualStage3d` is the subset of MONAI's :class:`monai.networks.blocks.ResidualUnit` that the shipped
+network uses (3D, kernel 3, ``"NDA"`` ordering, PReLU, instance or batch norm, no dropout), built from torch modules
+with the same module tree, so its ``state_dict`` keys are MONAI's (``conv.unit0.conv.weight``,
+``conv.unit0.adn.A.weight``, ``residual.weight``, ...): checkpoints load either way and
+``tests/test_networks.py`` checks both give the same output with the same weights.
+
+Why not MONAI's block: every ``monai.*`` import runs MONAI's ``__init__``, which imports all its submodules (ignite
+and ``torch.distributed`` among them): about 6 s on 2 cores (``python -X importtime -c "import monai"``), where
+``monai-rigidreg register`` has a budget of 1.5 s for the whole command (the speed issue). The register path
+therefore imports no MONAI module (``tests/test_threads_and_startup.py``); training, the transforms and the bundle
+still use MONAI.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+__all__ = ["NORMS", "ResidualStage3d"]
+
+NORMS = ("INSTANCE", "BATCH")
+"""Normalisation layers :class:`ResidualStage3d` builds (MONAI's names; a ``(name, kwargs)`` pair passes keyword
+arguments such as ``{"affine": True}`` to the torch layer, as MONAI's factories do)."""
+
+
+def _norm(norm: str | tuple, channels: int) -> nn.Module:
+    name, kwargs = (norm, {}) if isinstance(norm, str) else (norm[0], dict(norm[1]) if len(norm) > 1 else {})
+    name = str(name).upper()
+    if name == "INSTANCE":
+        return nn.InstanceNorm3d(channels, **kwargs)
+    if name == "BATCH":
+        return nn.BatchNorm3d(channels, **kwargs)
+    raise ValueError(f"norm must be one of {NORMS} (or a (name, kwargs) pair), got {norm!r}")
+
+
+class _ConvNormAct(nn.Sequential):
+    """``conv`` (3D, kernel 3, padding 1) then ``adn`` (``N``: norm, ``A``: PReLU): MONAI's ``Convolution``."""
+
+    def __init__(self, in_channels: int, out_channels: int, stride: int, norm: str | tuple) -> None:
+        super().__init__()
+        self.add_module("conv", nn.Conv3d(in_channels, out_channels, 3, stride, 1))
+        adn = nn.Sequential()
+        adn.add_module("N", _norm(norm, out_channels))
+        adn.add_module("A", nn.PReLU())
+        self.add_module("adn", adn)
+
+
+class ResidualStage3d(nn.Module):
+    """A residual stage: ``subunits`` conv-norm-PReLU units (the first with ``stride``) plus a residual branch.
+
+    ``out = conv(x) + residual(x)``; the residual is the identity when the shape is kept, a kernel-3 convolution
+    with ``stride`` when it is not (a kernel-1 one when only the channels change): MONAI's ``ResidualUnit`` with
+    ``spatial_dims=3, kernel_size=3, act="PRELU", adn_ordering="NDA"``, no dropout.
+
+    Args:
+        in_channels: input channels ``C_in``.
+        out_channels: output channels ``C_out``.
+        stride: stride of the first unit and of the residual branch (2 halves every spatial size, rounding up).
+        subunits: conv-norm-PReLU units (at least 1).
+        norm: ``"INSTANCE"``, ``"BATCH"`` or ``(name, kwargs)`` (see :data:`NORMS`).
+
+    Shapes: ``[B, C_in, x, y, z]`` -> ``[B, C_out, ceil(x / stride), ceil(y / stride), ceil(z / stride)]``.
+    """
+
+    def __init__(self, in_channels: int, out_channels: int, stride: int = 2, subunits: int = 2,
+                 norm: str | tuple = "INSTANCE") -> None:
+        super().__init__()
+        self.conv = nn.Sequential()
+        c_in, s = int(in_channels), int(stride)
+        for i in range(max(1, int(subunits))):
+            self.conv.add_module(f"unit{i:d}", _ConvNormAct(c_in, int(out_channels), s, norm))
+            c_in, s = int(out_channels), 1
+        self.residual: nn.Module = nn.Identity()
+        if int(stride) != 1:
+            self.residual = nn.Conv3d(int(in_channels), int(out_channels), 3, int(stride), 1)
+        elif int(in_channels) != int(out_channels):
+            self.residual = nn.Conv3d(int(in_channels), int(out_channels), 1, 1, 0)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.conv(x) + self.residual(x)
