@@ -11,6 +11,7 @@ calibration on simulated pairs with deliberately spoiled estimates is ``benchmar
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import SimpleITK as sitk
@@ -31,6 +32,7 @@ __all__ = [
     "CONFIDENCE_THRESHOLD",
     "LOCAL_GAIN_LIMIT",
     "EDGE_SPACING_MM",
+    "SWAP_AGREE_MM",
     "cylindrical_fov_mask",
     "fov_ncc",
     "confidence_score",
@@ -43,6 +45,11 @@ LOCAL_GAIN_LIMIT = 0.01
 """Edge-alignment gain (see :func:`confidence_score`) above which an estimate is treated as likely wrong."""
 EDGE_SPACING_MM = 4.0
 """Resolution (mm) at which :meth:`RigidRegistrar.assess` compares edges (finer network grids are pooled to it)."""
+SWAP_AGREE_MM = 3.0
+"""Above this disagreement (mm) between an estimate and its swapped-input estimate, the registrar scores both on
+the images (the CBCT field of view's NCC with the CT mapped into it, as it chooses between starts): a better
+swapped estimate replaces the estimate (``details.start == "swapped"``), a worse one does not count against it
+(``details.signals.swap_counted`` false)."""
 
 
 def cylindrical_fov_mask(image: sitk.Image, margin_mm: float = 2.0) -> sitk.Image:
@@ -74,7 +81,8 @@ def fov_ncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
 
 
 def confidence_score(
-    local_gain: float, swap_tre_mm: float, gain_ref: float = LOCAL_GAIN_LIMIT, tre_ref_mm: float = 3.0
+    local_gain: float, swap_tre_mm: float, gain_ref: float = LOCAL_GAIN_LIMIT, tre_ref_mm: float = 3.0,
+    swap_counted: bool = True,
 ) -> float:
     """Combine two failure signals into a score in [0, 1] (below 0.5: flagged).
 
@@ -83,27 +91,45 @@ def confidence_score(
       at the optimum (gain about 0); calibrated on simulated pairs with deliberately spoiled estimates
       (``benchmarks/bench_confidence.py``), errors of a few mm or degrees give gains above ``gain_ref``.
     * ``swap_tre_mm``: disagreement (mean TRE over the network grid, mm) between the forward estimate and the
-      inverse of the estimate with the inputs swapped; ``tre_ref_mm`` gives 0.5.
+      inverse of the estimate with the inputs swapped; ``tre_ref_mm`` gives 0.5. ``swap_counted=False``: the
+      disagreement is resolved (the swapped estimate matched the images worse than the estimate, see
+      :data:`SWAP_AGREE_MM`) and does not lower the score.
 
     Each signal maps through a logistic to [0, 1]; the score is the smaller, so either failure mode flags.
     """
     s_gain = 1.0 / (1.0 + np.exp((local_gain - gain_ref) / 0.003)) if np.isfinite(local_gain) else 0.0
     s_swap = 1.0 / (1.0 + np.exp((swap_tre_mm - tre_ref_mm) / 0.75)) if np.isfinite(swap_tre_mm) else 1.0
+    if not swap_counted:
+        s_swap = 1.0
     return float(min(s_gain, s_swap))
 
 
 def assess_estimate(
     moving_t: torch.Tensor,
-fixed_t: torch.Tensor,
-grid: Grid,
-params: np.ndarray,
-fov: torch.Tensor,
-estimate: Callable[[torch.Tensor, torch.Tensor], np.ndarray] | None = None,
-) -> dict[str, float]:
+    fixed_t: torch.Tensor,
+    grid: Grid,
+    params: np.ndarray,
+    fov: torch.Tensor,
+    estimate: Callable[[torch.Tensor, torch.Tensor], np.ndarray] | None = None,
+    region: torch.Tensor | None = None,
+) -> dict[str, Any]:
     """Failure signals of an estimate ``params`` (mm/deg about the grid centre) on preprocessed tensors.
 
+    Args:
+        moving_t, fixed_t: ``[1, x, y, z]`` CBCT and CT on ``grid`` (the CBCT possibly resampled through a start
+            estimate: ``params`` are then the residual in that frame).
+        grid: the network grid (CT frame, LPS mm).
+        params: the estimate, ``[6]`` mm / degrees about the grid centre, fixed -> moving.
+        fov: ``[x, y, z]`` field-of-view mask of ``moving_t`` on ``grid``.
+        estimate: the swapped-input estimator ``(moving, fixed) -> [6]`` (``None``: no swap test).
+        region: ``[x, y, z]`` match-region weight on ``grid`` (CT frame; e.g. the ``--roi`` box): the edge test
+            looks only where it is > 0.5, the region the estimate was asked to match (an anatomy that changed
+            outside it prefers another pose there by design).
+
     Returns ``ncc_before``/``ncc_after`` (intensity NCC in the field of view), ``edge_ncc`` (NCC of gradient
-    magnitudes), ``local_gain`` and ``swap_tre_mm`` (see :func:`confidence_score`) and ``confidence``.
+    magnitudes), ``local_gain`` and ``swap_tre_mm`` (see :func:`confidence_score`), ``confidence``, and with
+    ``estimate`` also ``swap_params``: the inverse of the swapped estimate, ``[6]`` numpy, in the frame of
+    ``params`` (the caller may score it as an alternative estimate, :data:`SWAP_AGREE_MM`).
     """
     p0 = np.asarray(params, dtype=np.float64)
     # edges are compared at about 4 mm (the grid pooled by ``factor``), where the gain threshold was calibrated:
@@ -130,6 +156,11 @@ estimate: Callable[[torch.Tensor, torch.Tensor], np.ndarray] | None = None,
         moving_p, grid_p = pyramid(moving_t[None].float(), grid, factor)
         fixed_p, _ = pyramid(fixed_f[None, None], grid, factor)
         fov_e = (pyramid(fov_e, grid, factor)[0][0, 0] > 0.999).to(fov_w.dtype)
+        if region is not None:
+            if tuple(region.shape) != tuple(grid.size):
+                raise ValueError(f"region must be [x, y, z] = {tuple(grid.size)}, got {tuple(region.shape)}")
+            region_p = pyramid(region.float()[None, None].to(fov_e.device), grid, factor)[0][0, 0]
+            fov_e = fov_e * (region_p > 0.5).to(fov_e.dtype)
         moved = warp_volume_params(moving_p.expand(len(candidates), -1, -1, -1, -1), batch, grid_p)
         edges_f = gradient_magnitude(fixed_p[0, 0])
         edges_m = gradient_magnitude(moved[:, 0])
@@ -146,6 +177,7 @@ estimate: Callable[[torch.Tensor, torch.Tensor], np.ndarray] | None = None,
         inv = matrix_to_params(invert_matrix(params_to_matrix(swapped, grid.center())), grid.center())
         out["swap_tre_mm"] = float(target_registration_error(params, inv, grid_points(grid, 4),
                                                              center=grid.center()))
+        out["swap_params"] = np.asarray(inv, dtype=np.float64)
     else:
         out["swap_tre_mm"] = float("nan")
     out["confidence"] = confidence_score(out["local_gain"], out["swap_tre_mm"])

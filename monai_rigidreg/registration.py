@@ -32,7 +32,9 @@ from monai_rigidreg.classical import register_sitk
 from monai_rigidreg.confidence import (
     CONFIDENCE_THRESHOLD,
     LOCAL_GAIN_LIMIT,
+    SWAP_AGREE_MM,
     assess_estimate,
+    confidence_score,
     cylindrical_fov_mask,
 )
 from monai_rigidreg.device import resolve_device
@@ -295,13 +297,24 @@ class RigidRegistrar:
 
     def assess(
         self, moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, params: np.ndarray, fov: torch.Tensor,
-        swap: bool = True,
-    ) -> dict[str, float]:
+        swap: bool = True, region: torch.Tensor | None = None,
+    ) -> dict[str, Any]:
         """Failure signals of ``params`` (mm/deg about the grid centre):
         :func:`~monai_rigidreg.confidence.assess_estimate` with this registrar's network as the swapped-input
-        estimator (``swap=False``: without that check)."""
+        estimator (``swap=False``: without that check); ``region``: the match-region weight on ``grid`` (the edge
+        test looks there only)."""
         estimate = (lambda m, f: self.estimate(m, f, grid)) if swap else None
-        return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate)
+        return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate, region=region)
+
+    def _native(self, fixed_img: sitk.Image, moving_img: sitk.Image, matrix: np.ndarray, fov_img: sitk.Image,
+                weights: list[sitk.Image]) -> tuple[np.ndarray, Grid]:
+        """The last level (:func:`~monai_rigidreg.precision.refine_native`) with the fine stage's settings."""
+        stage = self.network.fine_stage
+        return refine_native(
+            fixed_img, moving_img, matrix, fov_img, weights, highpass_sigma_mm=stage.highpass_sigma_mm,
+            highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
+            bias_degree=stage.bias_degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
+            secant=getattr(stage, "secant", False))
 
     def __call__(
         self,
@@ -450,11 +463,7 @@ class RigidRegistrar:
         params = net_params.copy()
         if native:
             t = time.perf_counter()
-            refined, native_grid = refine_native(
-                fixed_img, moving_img, run.total, fov_img, weights, highpass_sigma_mm=stage.highpass_sigma_mm,
-                highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
-                bias_degree=stage.bias_degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
-                secant=getattr(stage, "secant", False))
+            refined, native_grid = self._native(fixed_img, moving_img, run.total, fov_img, weights)
             params = matrix_to_params(refined, grid_center)
             net_params = params.copy()
             details["native_level"] = {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size),
@@ -493,9 +502,37 @@ class RigidRegistrar:
         confidence, flagged = float("nan"), False
         if assess:
             t = time.perf_counter()
-            # in the frame of the winning start: its resampled CBCT and the residual of the final estimate
-            residual = matrix_to_params(invert_matrix(run.start) @ params_to_matrix(params, grid_center), grid_center)
-            signals = self.assess(run.moving_t, run.fixed_t, grid, residual, fov_t)
+            region = None if weight_img is None else weight_on_grid([weight_img], grid)[0]
+            while True:
+                # in the frame of the winning start: its resampled CBCT and the residual of the final estimate
+                to_start = invert_matrix(run.start)
+                residual = matrix_to_params(to_start @ params_to_matrix(params, grid_center), grid_center)
+                signals = self.assess(run.moving_t, run.fixed_t, grid, residual, fov_t, region=region)
+                swapped = run.start @ params_to_matrix(signals.pop("swap_params"), grid_center)
+                if not signals["swap_tre_mm"] > SWAP_AGREE_MM:
+                    break
+                # the two estimates disagree: the one whose CBCT field of view matches the CT better is trusted
+                # (the rule that chooses between starts); a better swapped estimate replaces this one, once (not
+                # after --refine, which the user asked to start from the network's estimate)
+                ref_grid = self.grid_spec.pooled(2).centered(Grid.from_sitk(moving_img).center())
+                s_est, s_swap = fov_similarity(fixed_img, moving_img, fov_img,
+                                               [params_to_matrix(params, grid_center), swapped], ref_grid,
+                                               self.hu_range)
+                check = {"estimate_ncc": round(s_est, 4), "swapped_ncc": round(s_swap, 4),
+                         "swap_tre_mm": round(signals["swap_tre_mm"], 2)}
+                if s_swap > s_est and not refine and "swap_check" not in details:
+                    details["swap_check"] = {**check, "replaced": True}
+                    if native:
+                        swapped, _ = self._native(fixed_img, moving_img, swapped, fov_img, weights)
+                    params = matrix_to_params(swapped, grid_center)
+                    net_params = params.copy()
+                    details["start"] = "swapped"
+                    continue
+                details.setdefault("swap_check", {**check, "replaced": False})
+                signals["swap_counted"] = bool(s_swap >= s_est)
+                signals["confidence"] = confidence_score(signals["local_gain"], signals["swap_tre_mm"],
+                                                         swap_counted=signals["swap_counted"])
+                break
             timings["confidence"] = time.perf_counter() - t
             confidence = signals.pop("confidence")
             flagged = confidence < CONFIDENCE_THRESHOLD
@@ -608,7 +645,11 @@ def register(
             candidates, :mod:`monai_rigidreg.global_init`): the network also starts from the search's best candidate
             when it disagrees with the estimate from the identity, and the estimate whose CBCT field of view matches
             the CT better is kept (``details["start"]`` says which: ``"identity"`` or ``"search"``). ``None``
-            (default): on, except with ``fine_stage=False`` (the learned network alone); ``False``: off.
+            (default): on, except with ``fine_stage=False`` (the learned network alone); ``False``: off. The
+            confidence check's swapped-input estimate is a third candidate: when it disagrees by more than
+            :data:`~monai_rigidreg.confidence.SWAP_AGREE_MM` and matches better, it replaces the estimate (after its
+            own last level; ``details["start"] == "swapped"``, without ``refine``), and when it matches worse its
+            disagreement does not lower the confidence (``details["swap_check"]``).
         roi: restrict the match to a region of the CT: a box ``(x0, y0, z0, x1, y1, z1)`` in CT LPS mm or a mask
             image (non-zero inside) on the CT's physical space (:mod:`monai_rigidreg.match_region`).
         match: ``"soft"`` (all tissue, default) or ``"bone"`` (the CT's bone and a few mm around it).

@@ -13,7 +13,7 @@ from conftest import KNOWN_MOTION, TINY_SIM, small_registrar_for_tests, write_di
 from monai_rigidreg.cli import main
 from monai_rigidreg.confidence import confidence_score
 from monai_rigidreg.errors import InputError, OutputExistsError
-from monai_rigidreg.geometry import Grid, target_registration_error
+from monai_rigidreg.geometry import Grid, params_to_matrix, target_registration_error
 from monai_rigidreg.io import load_volume, read_transform
 from monai_rigidreg.networks import DualEncoderRigidNet
 from monai_rigidreg.outputs import write_outputs
@@ -321,3 +321,89 @@ def test_fine_stage_switch_returns_the_regressions_own_estimate(fast_pair, tmp_p
     assert result["details"]["fine_stage"] is False
     np.testing.assert_allclose([result["params"][k] for k in ("tx", "ty", "tz", "rx", "ry", "rz")], alone.params,
                                atol=1e-4)
+
+
+# -- the swapped-input estimate as a third candidate (confidence.SWAP_AGREE_MM) -------------------------------------
+
+
+@pytest.fixture(scope="module")
+def shipped_registrar():
+    return RigidRegistrar.from_bundle(device="cpu")
+
+
+def _fast_pair_tre(fast_pair, res) -> float:
+    from monai_rigidreg.evaluation.evaluate import body_points
+
+    return float(target_registration_error(res.params, MOTION, body_points(load_volume(fast_pair["fixed"])),
+                                           center=res.center))
+
+
+def test_a_better_swapped_estimate_replaces_a_wrong_one(fast_pair, shipped_registrar, monkeypatch):
+    """The last level is made to return an estimate 12 mm off (once); the swapped-input estimate disagrees, matches
+    the images better, and replaces it after its own last level: the result is right again, in the right frame
+    (a composition in the wrong order or direction would leave it centimetres off)."""
+    import monai_rigidreg.registration as reg_mod
+
+    real = reg_mod.refine_native
+    calls = []
+
+    def spoiled_once(fixed, moving, matrix, *args, **kwargs):
+        out, grid = real(fixed, moving, matrix, *args, **kwargs)
+        calls.append(1)
+        if len(calls) == 1:
+            out = out @ params_to_matrix([12.0, 0.0, 0.0, 0.0, 0.0, 0.0], np.zeros(3))
+        return out, grid
+
+    monkeypatch.setattr(reg_mod, "refine_native", spoiled_once)
+    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    assert len(calls) == 2  # the spoiled estimate, then the swapped one's last level
+    check = res.details["swap_check"]
+    assert check["replaced"] and check["swap_tre_mm"] > 8.0 and check["swapped_ncc"] > check["estimate_ncc"]
+    assert res.details["start"] == "swapped"
+    assert _fast_pair_tre(fast_pair, res) < 2.0
+    assert not res.flagged
+
+
+def test_a_worse_swapped_estimate_does_not_count_against_a_right_one(fast_pair, shipped_registrar, monkeypatch):
+    """The swapped-input estimate is made 15 mm wrong: it disagrees, matches the images worse, so the estimate
+    stays (right) and the disagreement does not flag it; the same disagreement counted would."""
+    import monai_rigidreg.confidence as conf_mod
+
+    real = conf_mod.assess_estimate
+
+    def wrong_swap(moving_t, fixed_t, grid, params, fov, estimate=None, region=None):
+        spoiled = None if estimate is None else (lambda m, f: estimate(m, f) + np.array([0.0, 15.0, 0, 0, 0, 0]))
+        return real(moving_t, fixed_t, grid, params, fov, spoiled, region=region)
+
+    monkeypatch.setattr("monai_rigidreg.registration.assess_estimate", wrong_swap)
+    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    check = res.details["swap_check"]
+    assert not check["replaced"] and check["swap_tre_mm"] > 10.0 and check["swapped_ncc"] < check["estimate_ncc"]
+    assert res.details["signals"]["swap_counted"] is False and res.details["start"] == "identity"
+    assert _fast_pair_tre(fast_pair, res) < 2.0
+    assert not res.flagged
+    assert confidence_score(res.details["signals"]["local_gain"], check["swap_tre_mm"]) < 0.5
+    assert confidence_score(0.0, 8.0, swap_counted=False) > 0.5
+
+
+def test_edge_test_looks_inside_the_match_region_only(pair, small_registrar):
+    """A CBCT whose half beyond x = centre moved 6 mm further: over the whole field of view the right estimate for
+    the other half loses edge alignment to a perturbation (gain above the limit); restricted to that half (the
+    region the estimate was asked to match) it sits at the optimum."""
+    from monai_rigidreg.confidence import LOCAL_GAIN_LIMIT
+    from monai_rigidreg.warp import warp_volume_params
+
+    fixed, moving = load_volume(pair["fixed"]), load_volume(pair["moving"])
+    grid = small_registrar.network_grid(fixed)
+    f_t = small_registrar.preprocess(fixed, grid)
+    m_t = small_registrar.preprocess(moving, grid)
+    shifted = warp_volume_params(m_t[None], torch.tensor([[6.0, 0, 0, 0, 0, 0]]), grid)[0]
+    half = torch.zeros_like(m_t[0])
+    half[grid.size[0] // 2:] = 1.0  # x index >= centre: the moved half (LPS +x, in the moving frame)
+    mixed = m_t * (1 - half) + shifted * half
+    fov = torch.ones_like(f_t[0])
+    region = 1.0 - half  # the other half; the motion is small, so the fixed-frame half is about the same voxels
+    whole = small_registrar.assess(mixed, f_t, grid, np.asarray(MOTION), fov, swap=False)
+    inside = small_registrar.assess(mixed, f_t, grid, np.asarray(MOTION), fov, swap=False, region=region)
+    assert whole["local_gain"] > LOCAL_GAIN_LIMIT, whole["local_gain"]
+    assert inside["local_gain"] < LOCAL_GAIN_LIMIT / 2, inside["local_gain"]
