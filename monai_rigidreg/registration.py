@@ -400,7 +400,8 @@ class RigidRegistrar:
         roi = parse_roi(roi)  # once: a mask file is read here
         weight_img = match_weight(fixed_img, roi, match)
         stage = getattr(self.network, "fine_stage", None)
-        native = self.native_level and stage is not None and getattr(self.network, "fine_stage_enabled", True)
+        staged = stage is not None and getattr(self.network, "fine_stage_enabled", True)  # False: the network alone
+        native = self.native_level and staged
         # the CBCT field of view: for the refinement, the confidence signals, the global search and the last level
         fov_img = None
         if refine or assess or global_init or native:
@@ -513,14 +514,15 @@ class RigidRegistrar:
                     break
                 # the two estimates disagree: the one whose CBCT field of view matches the CT better is trusted
                 # (the rule that chooses between starts); a better swapped estimate replaces this one, once (not
-                # after --refine, which the user asked to start from the network's estimate)
+                # after --refine, which the user asked to start from the network's estimate, and not for the
+                # learned network alone, fine_stage=False, which must stay measurable as it is)
                 ref_grid = self.grid_spec.pooled(2).centered(Grid.from_sitk(moving_img).center())
                 s_est, s_swap = fov_similarity(fixed_img, moving_img, fov_img,
                                                [params_to_matrix(params, grid_center), swapped], ref_grid,
                                                self.hu_range)
                 check = {"estimate_ncc": round(s_est, 4), "swapped_ncc": round(s_swap, 4),
                          "swap_tre_mm": round(signals["swap_tre_mm"], 2)}
-                if s_swap > s_est and not refine and "swap_check" not in details:
+                if s_swap > s_est and staged and not refine and "swap_check" not in details:
                     details["swap_check"] = {**check, "replaced": True}
                     if native:
                         swapped, _ = self._native(fixed_img, moving_img, swapped, fov_img, weights)
@@ -648,7 +650,8 @@ def register(
             (default): on, except with ``fine_stage=False`` (the learned network alone); ``False``: off. The
             confidence check's swapped-input estimate is a third candidate: when it disagrees by more than
             :data:`~monai_rigidreg.confidence.SWAP_AGREE_MM` and matches better, it replaces the estimate (after its
-            own last level; ``details["start"] == "swapped"``, without ``refine``), and when it matches worse its
+            own last level; ``details["start"] == "swapped"``; not with ``refine`` or ``fine_stage=False``), and
+            when it matches worse its
             disagreement does not lower the confidence (``details["swap_check"]``).
         roi: restrict the match to a region of the CT: a box ``(x0, y0, z0, x1, y1, z1)`` in CT LPS mm or a mask
             image (non-zero inside) on the CT's physical space (:mod:`monai_rigidreg.match_region`).
