@@ -3,9 +3,15 @@
 A result is *flagged* (a likely failure: check the QC figure) when :func:`confidence_score` falls below
 :data:`CONFIDENCE_THRESHOLD`. The score combines two signals computed by :func:`assess_estimate` on the
 network-grid tensors: whether a small perturbation of the estimate aligns edges better (a correct estimate sits at
-the optimum), and whether the estimate with the inputs swapped agrees with the inverse of this one. Their
-calibration on simulated pairs with deliberately spoiled estimates is ``benchmarks/bench_confidence.py``;
-``tests/test_register.py`` pins that clearly wrong estimates are flagged and right ones are not.
+the optimum; with a match region, e.g. ``--roi``, the edges inside it only), and whether the estimate with the inputs
+swapped agrees with the inverse of this one. Their calibration on simulated pairs with deliberately spoiled
+estimates is ``benchmarks/bench_confidence.py``; ``tests/test_register.py`` pins that clearly wrong estimates are
+flagged and right ones are not.
+
+A disagreement with the swapped-input estimate does not say which of the two is wrong. Above
+:data:`SWAP_AGREE_MM` the registrar scores both on the images, as it chooses between its starts, and trusts the
+better match: a better swapped estimate replaces the estimate, a worse one does not count against it
+(``benchmarks/bench_confidence_clinical.py`` shows both cases on the clinical-geometry pairs).
 """
 
 from __future__ import annotations
