@@ -57,3 +57,45 @@ def test_refine_native_removes_a_residual_of_a_few_mm_and_degrees():
     assert _mean_distance(stay, truth, box) < 0.1
     clipped, _ = refine_native(ct, cbct, truth, cylindrical_fov_mask(cbct), hu_range=(-1000.0, 2000.0))
     assert _mean_distance(clipped, truth, box) > 0.2
+
+
+def test_a_constant_bias_term_keeps_the_pose_under_a_cbct_hu_offset():
+    """A CBCT 300 HU brighter than the CT (a calibration offset, common on real CBCTs), started at the truth: with
+    the registrar's default bias model (a constant, ``native_bias_degree=0``) the last level stays at the truth
+    (0.03 mm, as without an offset); without a bias term the offset pulls the pose (0.10 mm here, growing with the
+    offset: 0.05 mm at 150 HU)."""
+    iso = np.array([10.0, -20.0, 5.0])
+    truth_iso = [6.0, -3.0, 4.0, 4.0, -3.0, 5.0]
+    ct, cbct, truth = _pair(truth_iso, iso)
+    cbct = sitk.Threshold(cbct + 300.0, -5000.0, 5000.0, 0.0)  # the offset everywhere in the scan
+    box = np.stack(np.meshgrid(*[np.linspace(-50, 50, 5)] * 3, indexing="ij"), -1).reshape(-1, 3) + iso
+    fov = cylindrical_fov_mask(cbct)
+    constant, _ = refine_native(ct, cbct, truth, fov, bias_degree=0)
+    none, _ = refine_native(ct, cbct, truth, fov, bias_degree=-1)
+    assert _mean_distance(constant, truth, box) < 0.1
+    assert _mean_distance(none, truth, box) > 2 * _mean_distance(constant, truth, box)
+
+
+def test_registrar_passes_its_native_bias_degree_to_the_last_level(monkeypatch):
+    """The bundle's native_bias_degree (0) reaches refine_native; a registrar built with another degree uses it;
+    degrees below -1 are refused."""
+    import pytest
+
+    import monai_rigidreg.registration as reg_mod
+    from monai_rigidreg.errors import InputError
+
+    seen = []
+
+    def record(*args, **kwargs):
+        seen.append(kwargs["bias_degree"])
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(reg_mod, "refine_native", record)
+    for degree, registrar in ((0, reg_mod.RigidRegistrar.from_bundle(device="cpu")),
+                              (-1, reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=-1))):
+        assert registrar.native_bias_degree == degree
+        with pytest.raises(RuntimeError, match="stop"):
+            registrar._native(None, None, np.eye(4), None, [])
+        assert seen[-1] == degree
+    with pytest.raises(InputError, match="native_bias_degree"):
+        reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=-2)
