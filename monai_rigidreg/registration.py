@@ -177,7 +177,8 @@ class RigidRegistrar:
             (``tests/test_precision.py``), while a smooth polynomial over the whole field of view also absorbs
             low-frequency anatomy and loosens the pose: on the 18 clinical-geometry successes the mean TRE was
             0.59 mm with the fine stage's degree 2, 0.46 mm with 0 and 0.39 mm with none (the simulated CBCTs have
-            no HU offset; real ones do) (README, "Clinical geometry").
+            no HU offset; real ones do): ``python benchmarks/bench_native_bias.py``,
+            ``benchmarks/results/bench_native_bias_2026-12-02.txt``.
 
     Build it once and reuse it: ``registrar = RigidRegistrar.from_bundle()`` then
     ``monai_rigidreg.register(ct, cbct, model=registrar)`` (or ``registrar(ct, cbct)``).
