@@ -76,6 +76,7 @@ import platform
 import shlex
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -213,6 +214,24 @@ def run_method(method: str, ct: Any, case: Any, registrar: Any, roi_supported: b
     out["time_s"] = time.perf_counter() - t0
     out["params"] = params
     return out
+
+
+def cached_pairs(pairs_dir: Path, groups: Any, out: Tee) -> Iterator[tuple[str, str, Any, Any]]:
+    """The pairs cached in ``pairs_dir`` (``<ct>/<group>_<nnn>/``) of the given groups, each CT loaded once:
+    ``(ct name, pair name, planning CT, case)``; a CT missing from the shared data is reported and skipped."""
+    from monai_rigidreg.simulation.clinical import load_clinical_case, load_planning_ct
+
+    for ct_dir in sorted(p for p in pairs_dir.iterdir() if p.is_dir()):
+        paths = find_cts([ct_dir.name], out, (ct_dir.name,))
+        if not paths:
+            continue
+        ct = load_planning_ct(paths[0])
+        for case_dir in sorted(p for p in ct_dir.iterdir() if p.is_dir()):
+            if case_dir.name.rsplit("_", 1)[0] not in groups:
+                continue
+            case = load_clinical_case(case_dir)
+            if case is not None:
+                yield ct_dir.name, case_dir.name, ct, case
 
 
 def case_errors(pred: np.ndarray, record: dict[str, Any], points: np.ndarray) -> dict[str, float]:

@@ -30,8 +30,8 @@ import monai_rigidreg  # noqa: E402  (first: its thread policy applies before to
 # isort: split
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from bench_clinical_geometry import case_errors, is_success, run_method  # noqa: E402
-from bench_common import Tee, find_cts  # noqa: E402
+from bench_clinical_geometry import cached_pairs, case_errors, is_success, run_method  # noqa: E402
+from bench_common import Tee  # noqa: E402
 
 
 def main() -> None:
@@ -44,7 +44,7 @@ def main() -> None:
     torch.set_num_threads(args.threads)
 
     from monai_rigidreg.confidence import CONFIDENCE_THRESHOLD, LOCAL_GAIN_LIMIT
-    from monai_rigidreg.simulation.clinical import load_clinical_case, load_planning_ct, tre_points
+    from monai_rigidreg.simulation.clinical import tre_points
 
     out = Tee()
     out(f"command: python {' '.join(sys.argv)}")
@@ -54,32 +54,22 @@ def main() -> None:
     out("\n| CT | pair | error (mm) | success | confidence | local_gain | swap_tre_mm | start | verdict |")
     out("|---|---|---|---|---|---|---|---|---|")
     counts = {"false alarm": 0, "flagged failure": 0, "missed failure": 0, "ok": 0}
-    for ct_dir in sorted(p for p in args.pairs_dir.iterdir() if p.is_dir()):
-        paths = find_cts([ct_dir.name], out, (ct_dir.name,))
-        if not paths:
-            continue
-        ct = load_planning_ct(paths[0])
-        for case_dir in sorted(p for p in ct_dir.iterdir() if p.is_dir()):
-            if case_dir.name.rsplit("_", 1)[0] not in args.groups:
-                continue
-            case = load_clinical_case(case_dir)
-            if case is None:
-                continue
-            # registered and scored as bench_clinical_geometry.py does (the deformed pairs with their ROI box)
-            rec = case.record
-            res = run_method("network", ct, case, registrar, roi_supported=True)
-            res.update(case_errors(res["params"], rec, tre_points(ct, case.matrix, case.fov)))
-            lm = np.asarray(rec["landmarks"]).reshape(-1, 3)
-            row = {"deformed": rec["deformation"] is not None, "results": {"network": res},
-                   "floor": float(rec["rigid_floor_mm"]) if len(lm) >= 3 else float("nan")}
-            ok = is_success(row, "network")
-            err = res["landmark"] if row["deformed"] else res["tre"]
-            verdict = ("false alarm" if res["flagged"] else "ok") if ok else (
-                "flagged failure" if res["flagged"] else "missed failure")
-            counts[verdict] += 1
-            s = res["details"]["signals"]
-            out(f"| {ct_dir.name} | {case_dir.name} | {err:.2f} | {'yes' if ok else 'no'} | {res['confidence']:.2f} | "
-                f"{s['local_gain']:.4f} | {s['swap_tre_mm']:.2f} | {res['details']['start']} | {verdict} |")
+    for ct_name, pair_name, ct, case in cached_pairs(args.pairs_dir, args.groups, out):
+        # registered and scored as bench_clinical_geometry.py does (the deformed pairs with their ROI box)
+        rec = case.record
+        res = run_method("network", ct, case, registrar, roi_supported=True)
+        res.update(case_errors(res["params"], rec, tre_points(ct, case.matrix, case.fov)))
+        lm = np.asarray(rec["landmarks"]).reshape(-1, 3)
+        row = {"deformed": rec["deformation"] is not None, "results": {"network": res},
+               "floor": float(rec["rigid_floor_mm"]) if len(lm) >= 3 else float("nan")}
+        ok = is_success(row, "network")
+        err = res["landmark"] if row["deformed"] else res["tre"]
+        verdict = ("false alarm" if res["flagged"] else "ok") if ok else (
+            "flagged failure" if res["flagged"] else "missed failure")
+        counts[verdict] += 1
+        s = res["details"]["signals"]
+        out(f"| {ct_name} | {pair_name} | {err:.2f} | {'yes' if ok else 'no'} | {res['confidence']:.2f} | "
+            f"{s['local_gain']:.4f} | {s['swap_tre_mm']:.2f} | {res['details']['start']} | {verdict} |")
     out("\n" + ", ".join(f"{k}: {v}" for k, v in counts.items()))
     if args.results is not None:
         args.results.parent.mkdir(parents=True, exist_ok=True)

@@ -29,8 +29,8 @@ import monai_rigidreg  # noqa: E402  (first: its thread policy applies before to
 # isort: split
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from bench_clinical_geometry import SUCCESS_MM, case_errors, run_method  # noqa: E402
-from bench_common import Tee, find_cts  # noqa: E402
+from bench_clinical_geometry import SUCCESS_MM, cached_pairs, case_errors, run_method  # noqa: E402
+from bench_common import Tee  # noqa: E402
 
 
 def main() -> None:
@@ -42,7 +42,7 @@ def main() -> None:
     ap.add_argument("--results", type=Path, default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    from monai_rigidreg.simulation.clinical import load_clinical_case, load_planning_ct, tre_points
+    from monai_rigidreg.simulation.clinical import tre_points
 
     out = Tee()
     out(f"command: python {' '.join(sys.argv)}")
@@ -51,24 +51,14 @@ def main() -> None:
     registrars = {d: monai_rigidreg.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=d)
                   for d in args.degrees}
     rows: list[tuple[str, dict[int, float]]] = []
-    for ct_dir in sorted(p for p in args.pairs_dir.iterdir() if p.is_dir()):
-        paths = find_cts([ct_dir.name], out, (ct_dir.name,))
-        if not paths:
-            continue
-        ct = load_planning_ct(paths[0])
-        for case_dir in sorted(p for p in ct_dir.iterdir() if p.is_dir()):
-            if case_dir.name.rsplit("_", 1)[0] not in args.groups:
-                continue
-            case = load_clinical_case(case_dir)
-            if case is None:
-                continue
-            points = tre_points(ct, case.matrix, case.fov)
-            tre = {}
-            for d, registrar in registrars.items():
-                res = run_method("network", ct, case, registrar, roi_supported=True)
-                tre[d] = case_errors(res["params"], case.record, points)["tre"]
-            rows.append((f"{ct_dir.name} {case_dir.name}", tre))
-            print(rows[-1][0], {d: round(v, 3) for d, v in tre.items()}, flush=True)
+    for ct_name, pair_name, ct, case in cached_pairs(args.pairs_dir, args.groups, out):
+        points = tre_points(ct, case.matrix, case.fov)
+        tre = {}
+        for d, registrar in registrars.items():
+            res = run_method("network", ct, case, registrar, roi_supported=True)
+            tre[d] = case_errors(res["params"], case.record, points)["tre"]
+        rows.append((f"{ct_name} {pair_name}", tre))
+        print(rows[-1][0], {d: round(v, 3) for d, v in tre.items()}, flush=True)
     out("\n| case | " + " | ".join(f"degree {d}" for d in args.degrees) + " |")
     out("|---|" + "---|" * len(args.degrees))
     for name, tre in rows:
