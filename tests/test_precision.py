@@ -61,7 +61,7 @@ def test_refine_native_removes_a_residual_of_a_few_mm_and_degrees():
 
 def test_a_constant_bias_term_keeps_the_pose_under_a_cbct_hu_offset():
     """A CBCT 300 HU brighter than the CT (a calibration offset, common on real CBCTs), started at the truth: with
-    the registrar's default bias model (a constant, ``native_bias_degree=0``) the last level stays at the truth
+    a constant bias term (``native_bias_degree=0``, the fine stage's 2 includes it) the last level stays at the truth
     (0.03 mm, as without an offset); without a bias term the offset pulls the pose (0.10 mm here, growing with the
     offset: 0.05 mm at 150 HU)."""
     iso = np.array([10.0, -20.0, 5.0])
@@ -77,7 +77,7 @@ def test_a_constant_bias_term_keeps_the_pose_under_a_cbct_hu_offset():
 
 
 def test_registrar_passes_its_native_bias_degree_to_the_last_level(monkeypatch):
-    """The bundle's native_bias_degree (0) reaches refine_native; a registrar built with another degree uses it;
+    """The bundle's native_bias_degree (2) reaches refine_native; a registrar built with another degree uses it;
     degrees below -1 are refused."""
     import pytest
 
@@ -91,8 +91,8 @@ def test_registrar_passes_its_native_bias_degree_to_the_last_level(monkeypatch):
         raise RuntimeError("stop")
 
     monkeypatch.setattr(reg_mod, "refine_native", record)
-    for degree, registrar in ((0, reg_mod.RigidRegistrar.from_bundle(device="cpu")),
-                              (-1, reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=-1))):
+    for degree, registrar in ((2, reg_mod.RigidRegistrar.from_bundle(device="cpu")),
+                              (0, reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=0))):
         assert registrar.native_bias_degree == degree
         with pytest.raises(RuntimeError, match="stop"):
             registrar._native(None, None, np.eye(4), None, [])
