@@ -299,7 +299,19 @@ def test_plain_reader_subset_and_fallback_to_monai(tmp_path):
     yaml_cfg.write_text("size: [4, 5]\n")
     with pytest.raises(NotPlain):
         PlainConfig(yaml_cfg)
-    assert isinstance(open_config(yaml_cfg, ("size",)), ConfigParser)
+
+
+def test_yaml_bundle_config_goes_to_monai(tmp_path):
+    """A YAML config is MONAI's to read (it needs PyYAML, an optional dependency of MONAI's)."""
+    pytest.importorskip("yaml", reason="MONAI reads YAML configs with PyYAML, which is not installed here")
+    from monai.bundle import ConfigParser
+
+    from monai_rigidreg.bundle_config import open_config
+
+    yaml_cfg = tmp_path / "c.yaml"
+    yaml_cfg.write_text("size: [4, 5]\n")
+    parser = open_config(yaml_cfg, ("size",))
+    assert isinstance(parser, ConfigParser) and parser.get_parsed_content("size") == [4, 5]
 
 
 def test_bundle_with_an_expression_setting_loads_through_monai(tmp_path):
