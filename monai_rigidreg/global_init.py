@@ -32,7 +32,14 @@ import torch
 from monai_rigidreg.body import without_couch
 from monai_rigidreg.confidence import cylindrical_fov_mask, fov_ncc
 from monai_rigidreg.geometry import Grid, grid_points, invert_matrix, params_to_matrix, transform_points
-from monai_rigidreg.grid_sampling import antialias_for_grid, crop_to_grid, resample_to_grid, sitk_on_grid, sitk_tensor
+from monai_rigidreg.grid_sampling import (
+    antialias_for_grid,
+    crop_to_grid,
+    normalize_hu,
+    resample_to_grid,
+    sitk_on_grid,
+    sitk_tensor,
+)
 
 __all__ = ["SearchCandidate", "global_search", "masked_ncc_map", "volume_spectra", "DEFAULT_ROTATIONS_DEG",
            "matrix_distance_mm", "fov_similarity", "SEARCH_AGREE_MM"]
@@ -220,7 +227,7 @@ def global_search(
     # the CBCT is anti-aliased once for the template spacing (a rotation does not change the spacing), then every
     # candidate samples it without further smoothing
     crop, crop_grid = crop_to_grid(cb, cb_grid, s_grid, 0)
-    cb_smooth = antialias_for_grid((crop.clamp(a, b) - a) / (b - a), crop_grid, t_grid)
+    cb_smooth = antialias_for_grid(normalize_hu(crop, a, b), crop_grid, t_grid)
     spectra = volume_spectra(volume, torch.float32)
     for rot in rotations_deg:
         r_matrix = params_to_matrix([0.0, 0.0, 0.0, *[float(v) for v in rot]], center)

@@ -5,9 +5,9 @@ One Gaussian kernel builder (:func:`gaussian_kernel_1d`), one separable filter o
 convolution :func:`local_mean`, the box erosion :func:`erode`, :func:`gradient_magnitude`, the average-pooling
 :func:`pyramid` and the masked global correlation :func:`masked_ncc`.
 
-This module depends on torch, numpy and :mod:`monai_rigidreg.geometry` only (not on MONAI: the register path
-imports it, see :mod:`monai_rigidreg.grid_sampling`) (never on the networks, the
-losses or the registrar), so any of those can use it. Every operation is differentiable with respect to its image
+This module depends on torch, numpy and :mod:`monai_rigidreg.geometry` only: never on the networks, the losses or
+the registrar, so any of those can use it, and not on MONAI, because the register path imports it (see
+:mod:`monai_rigidreg.grid_sampling`). Every operation is differentiable with respect to its image
 inputs; kernels follow the dtype and device of the input (the speed measurements are CPU ones).
 
 Sizes and units: sigmas and radii are in voxels (pixels) of the axis they act on; shapes are given per function.

@@ -25,7 +25,7 @@ import SimpleITK as sitk
 import torch
 
 from monai_rigidreg.geometry import Grid, invert_matrix, transform_points
-from monai_rigidreg.grid_sampling import sitk_on_grid
+from monai_rigidreg.grid_sampling import normalize_hu, sitk_on_grid
 from monai_rigidreg.image_ops import erode
 from monai_rigidreg.match_region import weight_on_grid
 from monai_rigidreg.networks.gauss_newton import alignment_features, gauss_newton_align
@@ -96,8 +96,8 @@ def refine_native(
     grid = native_grid(fixed, moving, matrix, min_spacing_mm, max_extent_mm, max_voxels)
     a, b = hu_range
 
-    fixed_t = ((sitk_on_grid(fixed, grid, "bilinear", a).clamp(a, b) - a) / (b - a))[None].to(device)
-    moving_t = ((sitk_on_grid(moving, grid, "bilinear", a, matrix=matrix).clamp(a, b) - a) / (b - a))[None].to(device)
+    fixed_t = normalize_hu(sitk_on_grid(fixed, grid, "bilinear", a), a, b)[None].to(device)
+    moving_t = normalize_hu(sitk_on_grid(moving, grid, "bilinear", a, matrix=matrix), a, b)[None].to(device)
     fov = (sitk_on_grid(moving_fov, grid, "nearest", 0.0, matrix=matrix) > 0).to(torch.float32)[None].to(device)
     radius = [max(1, round(support_erosion_mm / s)) for s in grid.spacing]
     support = erode(fov, radius)

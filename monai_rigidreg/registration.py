@@ -320,6 +320,14 @@ class RigidRegistrar:
         estimate = (lambda m, f: self.estimate(m, f, grid)) if swap else None
         return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate, region=region)
 
+    def _image_match(self, fixed_img: sitk.Image, moving_img: sitk.Image, fov_img: sitk.Image,
+                     matrices: list[np.ndarray]) -> list[float]:
+        """How well each fixed -> moving estimate matches the images: the NCC of the CBCT's field of view with the CT
+        mapped into it (:func:`~monai_rigidreg.global_init.fov_similarity`) on the network grid pooled by 2, centred
+        on the CBCT. The one rule that chooses between starts and between an estimate and its swapped-input twin."""
+        ref_grid = self.grid_spec.pooled(2).centered(Grid.from_sitk(moving_img).center())
+        return fov_similarity(fixed_img, moving_img, fov_img, matrices, ref_grid, self.hu_range)
+
     def _native(self, fixed_img: sitk.Image, moving_img: sitk.Image, matrix: np.ndarray, fov_img: sitk.Image,
                 weights: list[sitk.Image]) -> tuple[np.ndarray, Grid]:
         """The last level (:func:`~monai_rigidreg.precision.refine_native`) with the fine stage's feature settings
@@ -464,9 +472,7 @@ class RigidRegistrar:
                 # best candidate, and the estimate whose CBCT field of view matches the CT better goes on
                 t = time.perf_counter()
                 alt = self._run_from(fixed_img, moving_img, best.matrix, cascade_steps, weights, timings, body)
-                ref_grid = self.grid_spec.pooled(2).centered(Grid.from_sitk(moving_img).center())
-                s0, s1 = fov_similarity(fixed_img, moving_img, fov_img, [run.total, alt.total], ref_grid,
-                                        self.hu_range)
+                s0, s1 = self._image_match(fixed_img, moving_img, fov_img, [run.total, alt.total])
                 search.update(identity_start_ncc=round(s0, 4), search_start_ncc=round(s1, 4))
                 if s1 > s0:
                     run = alt
@@ -519,6 +525,7 @@ class RigidRegistrar:
         if assess:
             t = time.perf_counter()
             region = None if weight_img is None else weight_on_grid([weight_img], grid)[0]
+            replaced = False
             while True:
                 # in the frame of the winning start: its resampled CBCT and the residual of the final estimate
                 to_start = invert_matrix(run.start)
@@ -531,13 +538,12 @@ class RigidRegistrar:
                 # (the rule that chooses between starts); a better swapped estimate replaces this one, once (not
                 # after --refine, which the user asked to start from the network's estimate, and not for the
                 # learned network alone, fine_stage=False, which must stay measurable as it is)
-                ref_grid = self.grid_spec.pooled(2).centered(Grid.from_sitk(moving_img).center())
-                s_est, s_swap = fov_similarity(fixed_img, moving_img, fov_img,
-                                               [params_to_matrix(params, grid_center), swapped], ref_grid,
-                                               self.hu_range)
+                s_est, s_swap = self._image_match(fixed_img, moving_img, fov_img,
+                                                  [params_to_matrix(params, grid_center), swapped])
                 check = {"estimate_ncc": round(s_est, 4), "swapped_ncc": round(s_swap, 4),
                          "swap_tre_mm": round(signals["swap_tre_mm"], 2)}
-                if s_swap > s_est and staged and not refine and "swap_check" not in details:
+                if s_swap > s_est and staged and not refine and not replaced:
+                    replaced = True
                     details["swap_check"] = {**check, "replaced": True}
                     if native:
                         swapped, _ = self._native(fixed_img, moving_img, swapped, fov_img, weights)
@@ -666,8 +672,7 @@ def register(
             confidence check's swapped-input estimate is a third candidate: when it disagrees by more than
             :data:`~monai_rigidreg.confidence.SWAP_AGREE_MM` and matches better, it replaces the estimate (after its
             own last level; ``details["start"] == "swapped"``; not with ``refine`` or ``fine_stage=False``), and
-            when it matches worse its
-            disagreement does not lower the confidence (``details["swap_check"]``).
+            when it matches worse its disagreement does not lower the confidence (``details["swap_check"]``).
         roi: restrict the match to a region of the CT: a box ``(x0, y0, z0, x1, y1, z1)`` in CT LPS mm or a mask
             image (non-zero inside) on the CT's physical space (:mod:`monai_rigidreg.match_region`).
         match: ``"soft"`` (all tissue, default) or ``"bone"`` (the CT's bone and a few mm around it).
