@@ -216,6 +216,17 @@ def run_method(method: str, ct: Any, case: Any, registrar: Any, roi_supported: b
     return out
 
 
+def pairs_parser(description: str, groups: list[str]) -> argparse.ArgumentParser:
+    """The command line of a benchmark over the cached pairs (:func:`cached_pairs`): ``--pairs-dir``, ``--groups``
+    (default ``groups``), ``--threads`` (torch threads, default 1) and ``--results`` (a file for the printed text)."""
+    ap = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--pairs-dir", type=Path, default=Path("bench_out/clinical"))
+    ap.add_argument("--groups", nargs="*", default=list(groups))
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--results", type=Path, default=None)
+    return ap
+
+
 def cached_pairs(pairs_dir: Path, groups: Any, out: Tee) -> Iterator[tuple[str, str, Any, Any]]:
     """The pairs cached in ``pairs_dir`` (``<ct>/<group>_<nnn>/``) of the given groups, each CT loaded once:
     ``(ct name, pair name, planning CT, case)``; a CT missing from the shared data is reported and skipped."""

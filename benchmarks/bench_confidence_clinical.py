@@ -17,10 +17,8 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
-from pathlib import Path
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -30,16 +28,12 @@ import monai_rigidreg  # noqa: E402  (first: its thread policy applies before to
 # isort: split
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from bench_clinical_geometry import cached_pairs, case_errors, is_success, run_method  # noqa: E402
+from bench_clinical_geometry import cached_pairs, case_errors, is_success, pairs_parser, run_method  # noqa: E402
 from bench_common import Tee  # noqa: E402
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--pairs-dir", type=Path, default=Path("bench_out/clinical"))
-    ap.add_argument("--groups", nargs="*", default=["small", "large", "deformed"])
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--results", type=Path, default=None)
+    ap = pairs_parser(__doc__, ["small", "large", "deformed"])
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 

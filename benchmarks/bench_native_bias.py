@@ -18,10 +18,8 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
-from pathlib import Path
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -31,17 +29,13 @@ import monai_rigidreg  # noqa: E402  (first: its thread policy applies before to
 # isort: split
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
-from bench_clinical_geometry import SUCCESS_MM, cached_pairs, case_errors, is_success, run_method  # noqa: E402
+from bench_clinical_geometry import SUCCESS_MM, cached_pairs, case_errors, is_success, pairs_parser, run_method  # noqa: E402
 from bench_common import Tee  # noqa: E402
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--pairs-dir", type=Path, default=Path("bench_out/clinical"))
-    ap.add_argument("--groups", nargs="*", default=["small", "large"])
+    ap = pairs_parser(__doc__, ["small", "large"])
     ap.add_argument("--degrees", nargs="+", type=int, default=[2, 0, -1])
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--results", type=Path, default=None)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     from monai_rigidreg.simulation.clinical import tre_points
