@@ -143,9 +143,8 @@ def qc_figure(
     subtitle = f"fixed: {names[0]}   moving: {names[1]}" if names else ""
     if title or subtitle:
         fig.suptitle("\n".join(t for t in (title, subtitle) if t), fontsize=11)
-    # fixed margins instead of tight_layout(), which draws the whole figure an extra time to measure its text (a
-    # quarter of the figure's time on a 256 x 256 x 141 CT; the figure's share of a command is the difference of
-    # benchmarks/bench_speed.py's CLI rows with and without --no-qc)
+    # fixed margins instead of tight_layout(), which draws the whole figure an extra time to measure its text (the
+    # figure's share of a command is the difference of benchmarks/bench_speed.py's CLI rows with and without --no-qc)
     fig.subplots_adjust(left=0.025, right=0.99, bottom=0.01, top=0.9 if subtitle else 0.93, wspace=0.32,
                         hspace=0.06)
     fig.savefig(p, dpi=80)
