@@ -1,12 +1,14 @@
 """How much to trust a registration: the CBCT field-of-view mask, the failure signals and the confidence score.
 
 A result is *flagged* (a likely failure: check the QC figure) when :func:`confidence_score` falls below
-:data:`CONFIDENCE_THRESHOLD`. The score combines two signals computed by :func:`assess_estimate` on the
+:data:`CONFIDENCE_THRESHOLD`. The score combines three signals computed by :func:`assess_estimate` on the
 network-grid tensors: whether a small perturbation of the estimate aligns edges better (a correct estimate sits at
-the optimum; with a match region, e.g. ``--roi``, the edges inside it only), and whether the estimate with the inputs
-swapped agrees with the inverse of this one. Their calibration on simulated pairs with deliberately spoiled
-estimates is ``benchmarks/bench_confidence.py``; ``tests/test_register.py`` pins that clearly wrong estimates are
-flagged and right ones are not.
+the optimum; with a match region, e.g. ``--roi``, the edges inside it only), whether the estimate with the inputs
+swapped agrees with the inverse of this one, and how much of the CT's tissue it puts on CBCT air
+(:func:`tissue_on_air`: a gross failure, wherever its edge optimum lies). The first two are calibrated on simulated
+pairs with deliberately spoiled estimates (``benchmarks/bench_confidence.py``), the third on the clinical-geometry
+pairs (``benchmarks/bench_confidence_clinical.py --spoil``); ``tests/test_register.py`` pins that clearly wrong
+estimates are flagged and right ones are not.
 
 A disagreement with the swapped-input estimate does not say which of the two is wrong. Above
 :data:`SWAP_AGREE_MM` the registrar scores both on the images, as it chooses between its starts, and trusts the
@@ -39,7 +41,11 @@ __all__ = [
     "LOCAL_GAIN_LIMIT",
     "EDGE_SPACING_MM",
     "SWAP_AGREE_MM",
+    "TISSUE_ON_AIR_LIMIT",
+    "TISSUE_HU",
+    "AIR_HU",
     "cylindrical_fov_mask",
+    "tissue_on_air",
     "fov_ncc",
     "confidence_score",
     "assess_estimate",
@@ -51,6 +57,12 @@ LOCAL_GAIN_LIMIT = 0.01
 """Edge-alignment gain (see :func:`confidence_score`) above which an estimate is treated as likely wrong."""
 EDGE_SPACING_MM = 4.0
 """Resolution (mm) at which :meth:`RigidRegistrar.assess` compares edges (finer network grids are pooled to it)."""
+TISSUE_ON_AIR_LIMIT = 0.06
+"""Share of the CT's tissue in view put on CBCT air (:func:`tissue_on_air`) that scores 0.5 in
+:func:`confidence_score`. Measured on the clinical-geometry pairs (``python benchmarks/bench_confidence_clinical.py
+--spoil``): true poses at most 0.024 (deformed anatomy included), the network's successes at most 0.018, its two gross
+failures (34 and 128 mm) 0.084 and 0.128; poses spoiled by 20 mm or 20 degrees a median of 0.07-0.11, but as little
+as 0 for a shift along a body that looks alike along it, which the edge and swap tests must catch."""
 SWAP_AGREE_MM = 3.0
 """Above this disagreement (mm) between an estimate and its swapped-input estimate, the registrar scores both on
 the images (the CBCT field of view's NCC with the CT mapped into it, as it chooses between starts): a better
@@ -86,11 +98,44 @@ def fov_ncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
     return float(masked_ncc(a.double()[None, None], b.double()[None, None], m[None, None])[0])
 
 
+TISSUE_HU = -200.0
+"""CT voxels above this (HU) are soft tissue or bone for :func:`tissue_on_air`."""
+AIR_HU = -500.0
+"""CBCT voxels below this (HU) read as air or lung for :func:`tissue_on_air`."""
+
+
+def tissue_on_air(
+    fixed: torch.Tensor, moved: torch.Tensor, fov: torch.Tensor, hu_range: tuple[float, float] = (-1000.0, 2000.0),
+) -> float:
+    """Fraction of the CT's tissue in the field of view that the estimate maps onto air in the CBCT.
+
+    Args:
+        fixed: ``[x, y, z]`` CT on the network grid, HU normalized from ``hu_range`` to ``[0, 1]`` (with the couch
+            excluded, its voxels outside the body are air already).
+        moved: ``[x, y, z]`` CBCT resampled through the estimate onto the same grid, normalized alike.
+        fov: ``[x, y, z]`` the CBCT's field of view on the grid (> 0.5 inside).
+        hu_range: the normalization window.
+
+    Returns the share of the voxels inside ``fov`` with CT above :data:`TISSUE_HU` whose CBCT reads below
+    :data:`AIR_HU` (NaN when fewer than 100 tissue voxels are in view). A gross failure puts CT tissue on the air
+    around the patient, on lung or on gas; a right pose leaves only the anatomy that changed between the scans (a
+    few percent on the deformed clinical-geometry pairs, ``benchmarks/bench_confidence_clinical.py``). Unlike the
+    edge test it does not depend on the estimate being near an optimum, only on where tissue and air lie.
+    """
+    lo, hi = hu_range
+    tissue = (fixed > (TISSUE_HU - lo) / (hi - lo)) & (fov > 0.5)
+    n = int(tissue.sum())
+    if n < 100:
+        return float("nan")
+    air = moved < (AIR_HU - lo) / (hi - lo)
+    return float((tissue & air).sum()) / n
+
+
 def confidence_score(
     local_gain: float, swap_tre_mm: float, gain_ref: float = LOCAL_GAIN_LIMIT, tre_ref_mm: float = 3.0,
-    swap_counted: bool = True,
+    swap_counted: bool = True, tissue_on_air_share: float = float("nan"), air_ref: float = TISSUE_ON_AIR_LIMIT,
 ) -> float:
-    """Combine two failure signals into a score in [0, 1] (below 0.5: flagged).
+    """Combine the failure signals into a score in [0, 1] (below 0.5: flagged).
 
     * ``local_gain``: how much the edge alignment (NCC of gradient magnitudes in the field of view) improves when
       the estimate is perturbed by half a network voxel or 2 degrees along any parameter. A correct estimate sits
@@ -100,14 +145,18 @@ def confidence_score(
       inverse of the estimate with the inputs swapped; ``tre_ref_mm`` gives 0.5. ``swap_counted=False``: the
       disagreement is resolved (the swapped estimate matched the images worse than the estimate, see
       :data:`SWAP_AGREE_MM`) and does not lower the score.
+    * ``tissue_on_air_share``: :func:`tissue_on_air` of the estimate; ``air_ref`` gives 0.5 (NaN: not measured, no
+      effect). A gross failure puts CT tissue on CBCT air whether or not the estimate sits at an edge optimum.
 
-    Each signal maps through a logistic to [0, 1]; the score is the smaller, so either failure mode flags.
+    Each signal maps through a logistic to [0, 1]; the score is the smallest, so any failure mode flags.
     """
     s_gain = 1.0 / (1.0 + np.exp((local_gain - gain_ref) / 0.003)) if np.isfinite(local_gain) else 0.0
     s_swap = 1.0 / (1.0 + np.exp((swap_tre_mm - tre_ref_mm) / 0.75)) if np.isfinite(swap_tre_mm) else 1.0
     if not swap_counted:
         s_swap = 1.0
-    return float(min(s_gain, s_swap))
+    s_air = 1.0 / (1.0 + np.exp((tissue_on_air_share - air_ref) / 0.008)) if np.isfinite(tissue_on_air_share) \
+        else 1.0
+    return float(min(s_gain, s_swap, s_air))
 
 
 def assess_estimate(
@@ -118,6 +167,7 @@ def assess_estimate(
     fov: torch.Tensor,
     estimate: Callable[[torch.Tensor, torch.Tensor], np.ndarray] | None = None,
     region: torch.Tensor | None = None,
+    hu_range: tuple[float, float] = (-1000.0, 2000.0),
 ) -> dict[str, Any]:
     """Failure signals of an estimate ``params`` (mm/deg about the grid centre) on preprocessed tensors.
 
@@ -131,9 +181,12 @@ def assess_estimate(
         region: ``[x, y, z]`` match-region weight on ``grid`` (CT frame; e.g. the ``--roi`` box): the edge test
             looks only where it is > 0.5, the region the estimate was asked to match (an anatomy that changed
             outside it prefers another pose there by design).
+        hu_range: the HU window the tensors were normalized from (``[0, 1]``), for the tissue/air levels of
+            :func:`tissue_on_air`.
 
     Returns ``ncc_before``/``ncc_after`` (intensity NCC in the field of view), ``edge_ncc`` (NCC of gradient
-    magnitudes), ``local_gain`` and ``swap_tre_mm`` (see :func:`confidence_score`), ``confidence``, and with
+    magnitudes), ``tissue_on_air`` (:func:`tissue_on_air` of the estimate), ``local_gain`` and ``swap_tre_mm`` (see
+    :func:`confidence_score`), ``confidence``, and with
     ``estimate`` also ``swap_params``: the inverse of the swapped estimate, ``[6]`` numpy, in the frame of
     ``params`` (the caller may score it as an alternative estimate, :data:`SWAP_AGREE_MM`).
     """
@@ -154,6 +207,7 @@ def assess_estimate(
         moved0 = warp_volume_params(moving_t[None].float(), batch[:1], grid)[0, 0]
         fov_w = warp_volume_params(fov[None, None].float(), batch[:1], grid, mode="nearest")[0, 0]
         out = {"ncc_before": fov_ncc(moving_t[0], fixed_f, fov), "ncc_after": fov_ncc(moved0, fixed_f, fov_w)}
+        out["tissue_on_air"] = tissue_on_air(fixed_f, moved0, erode(fov_w[None, None], (2, 2, 2))[0, 0], hu_range)
         # away from the field-of-view border: the CBCT's own edge there (data to zero) is no anatomy, and the
         # candidates move it by up to a pooled voxel (erosion radius: that step plus the gradient stencil)
         r = 2 * factor + 1
@@ -186,6 +240,7 @@ def assess_estimate(
         out["swap_params"] = np.asarray(inv, dtype=np.float64)
     else:
         out["swap_tre_mm"] = float("nan")
-    out["confidence"] = confidence_score(out["local_gain"], out["swap_tre_mm"])
+    out["confidence"] = confidence_score(out["local_gain"], out["swap_tre_mm"],
+                                         tissue_on_air_share=out["tissue_on_air"])
     return out
 

@@ -199,6 +199,7 @@ class RigidRegistrar:
         search_settings: dict[str, Any] | None = None,
         native_level: bool = True,
         native_bias_degree: int = 2,
+        native_bias_degree_roi: int | None = None,
     ) -> None:
         if network_size is None or network_spacing is None:
             shipped = NetworkGridSpec.from_bundle()
@@ -224,9 +225,14 @@ class RigidRegistrar:
         self.global_init = bool(global_init)
         self.search_settings = dict(search_settings or {})
         self.native_level = bool(native_level)
-        if int(native_bias_degree) < -1:
-            raise InputError(f"native_bias_degree must be -1 (none) or a degree >= 0, got {native_bias_degree}")
+        if native_bias_degree_roi is None:
+            native_bias_degree_roi = native_bias_degree
+        for name, degree in (("native_bias_degree", native_bias_degree),
+                             ("native_bias_degree_roi", native_bias_degree_roi)):
+            if int(degree) < -1:
+                raise InputError(f"{name} must be -1 (none) or a degree >= 0, got {degree}")
         self.native_bias_degree = int(native_bias_degree)
+        self.native_bias_degree_roi = int(native_bias_degree_roi)
         # a network that takes the match-region weight (TwoStageRigidNet, CorrelationRigidNet); others ignore it
         self.accepts_weight = "fixed_weight" in inspect.signature(self.network.forward).parameters
         # one registration at a time per registrar: fine_stage_switch changes the shared network's setting
@@ -318,7 +324,7 @@ class RigidRegistrar:
         estimator (``swap=False``: without that check); ``region``: the match-region weight on ``grid`` (the edge
         test looks there only)."""
         estimate = (lambda m, f: self.estimate(m, f, grid)) if swap else None
-        return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate, region=region)
+        return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate, region=region, hu_range=self.hu_range)
 
     def _image_match(self, fixed_img: sitk.Image, moving_img: sitk.Image, fov_img: sitk.Image,
                      matrices: list[np.ndarray]) -> list[float]:
@@ -329,15 +335,25 @@ class RigidRegistrar:
         return fov_similarity(fixed_img, moving_img, fov_img, matrices, ref_grid, self.hu_range)
 
     def _native(self, fixed_img: sitk.Image, moving_img: sitk.Image, matrix: np.ndarray, fov_img: sitk.Image,
-                weights: list[sitk.Image]) -> tuple[np.ndarray, Grid]:
+                weights: list[sitk.Image], region: bool = False) -> tuple[np.ndarray, Grid]:
         """The last level (:func:`~monai_rigidreg.precision.refine_native`) with the fine stage's feature settings
-        and this registrar's ``native_bias_degree``."""
+        and this registrar's ``native_bias_degree`` (``native_bias_degree_roi`` when ``region``: a match region,
+        ``--roi`` or ``--match bone``, is among ``weights``)."""
         stage = self.network.fine_stage
+        degree = self.native_bias_degree_roi if region else self.native_bias_degree
         return refine_native(
             fixed_img, moving_img, matrix, fov_img, weights, highpass_sigma_mm=stage.highpass_sigma_mm,
             highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
-            bias_degree=self.native_bias_degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
+            bias_degree=degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
             secant=getattr(stage, "secant", False))
+
+    def _native_detail(self, native_grid: Grid, refined: np.ndarray, start: np.ndarray, grid: Grid,
+                       region: bool) -> dict[str, Any]:
+        """``details.native_level``: the last level's grid, bias degree and how far it moved the estimate (mean
+        distance over the network grid's points, mm)."""
+        return {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size),
+                "bias_degree": self.native_bias_degree_roi if region else self.native_bias_degree,
+                "change_mm": round(matrix_distance_mm(refined, start, grid_points(grid, 8)), 3)}
 
     def __call__(
         self,
@@ -485,12 +501,12 @@ class RigidRegistrar:
         params = net_params.copy()
         if native:
             t = time.perf_counter()
-            refined, native_grid = self._native(fixed_img, moving_img, run.total, fov_img, weights)
+            refined, native_grid = self._native(fixed_img, moving_img, run.total, fov_img, weights,
+                                               region=weight_img is not None)
             params = matrix_to_params(refined, grid_center)
             net_params = params.copy()
-            details["native_level"] = {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size),
-                                       "change_mm": round(matrix_distance_mm(refined, run.total,
-                                                                             grid_points(grid, 8)), 3)}
+            details["native_level"] = self._native_detail(native_grid, refined, run.total, grid,
+                                                          weight_img is not None)
             timings["native_level"] = time.perf_counter() - t
 
         fov_t = None
@@ -546,7 +562,12 @@ class RigidRegistrar:
                     replaced = True
                     details["swap_check"] = {**check, "replaced": True}
                     if native:
-                        swapped, _ = self._native(fixed_img, moving_img, swapped, fov_img, weights)
+                        # the last level from the swapped estimate: details.native_level describes this run
+                        start_swapped = swapped
+                        swapped, swapped_grid = self._native(fixed_img, moving_img, swapped, fov_img, weights,
+                                                             region=weight_img is not None)
+                        details["native_level"] = self._native_detail(swapped_grid, swapped, start_swapped, grid,
+                                                                      weight_img is not None)
                     params = matrix_to_params(swapped, grid_center)
                     net_params = params.copy()
                     details["start"] = "swapped"
@@ -554,7 +575,8 @@ class RigidRegistrar:
                 details.setdefault("swap_check", {**check, "replaced": False})
                 signals["swap_counted"] = bool(s_swap >= s_est)
                 signals["confidence"] = confidence_score(signals["local_gain"], signals["swap_tre_mm"],
-                                                         swap_counted=signals["swap_counted"])
+                                                         swap_counted=signals["swap_counted"],
+                                                         tissue_on_air_share=signals["tissue_on_air"])
                 break
             timings["confidence"] = time.perf_counter() - t
             confidence = signals.pop("confidence")

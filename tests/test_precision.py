@@ -77,8 +77,9 @@ def test_a_constant_bias_term_keeps_the_pose_under_a_cbct_hu_offset():
 
 
 def test_registrar_passes_its_native_bias_degree_to_the_last_level(monkeypatch):
-    """The bundle's native_bias_degree (2) reaches refine_native; a registrar built with another degree uses it;
-    degrees below -1 are refused."""
+    """The bundle's degrees reach refine_native: native_bias_degree (0) over the whole field of view,
+    native_bias_degree_roi (2) with a match region; a registrar built with other degrees uses them (the region one
+    defaults to the whole-FOV one); degrees below -1 are refused."""
     import pytest
 
     import monai_rigidreg.registration as reg_mod
@@ -91,11 +92,18 @@ def test_registrar_passes_its_native_bias_degree_to_the_last_level(monkeypatch):
         raise RuntimeError("stop")
 
     monkeypatch.setattr(reg_mod, "refine_native", record)
-    for degree, registrar in ((2, reg_mod.RigidRegistrar.from_bundle(device="cpu")),
-                              (0, reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=0))):
-        assert registrar.native_bias_degree == degree
-        with pytest.raises(RuntimeError, match="stop"):
-            registrar._native(None, None, np.eye(4), None, [])
-        assert seen[-1] == degree
+    for (whole, roi), registrar in (
+        ((0, 2), reg_mod.RigidRegistrar.from_bundle(device="cpu")),
+        ((1, 1), reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=1,
+                                                    native_bias_degree_roi=None)),
+        ((-1, 2), reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=-1)),
+    ):
+        assert (registrar.native_bias_degree, registrar.native_bias_degree_roi) == (whole, roi)
+        for region, degree in ((False, whole), (True, roi)):
+            with pytest.raises(RuntimeError, match="stop"):
+                registrar._native(None, None, np.eye(4), None, [], region=region)
+            assert seen[-1] == degree
     with pytest.raises(InputError, match="native_bias_degree"):
         reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=-2)
+    with pytest.raises(InputError, match="native_bias_degree_roi"):
+        reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree_roi=-3)

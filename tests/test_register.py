@@ -357,6 +357,8 @@ def test_a_better_swapped_estimate_replaces_a_wrong_one(fast_pair, shipped_regis
     monkeypatch.setattr(reg_mod, "refine_native", spoiled_once)
     res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
     assert len(calls) == 2  # the spoiled estimate, then the swapped one's last level
+    # details.native_level describes the swapped estimate's own last level (a small correction), not the spoiled one
+    assert res.details["native_level"]["change_mm"] < 5.0
     check = res.details["swap_check"]
     assert check["replaced"] and check["swap_tre_mm"] > 8.0 and check["swapped_ncc"] > check["estimate_ncc"]
     assert res.details["start"] == "swapped"
@@ -371,9 +373,9 @@ def test_a_worse_swapped_estimate_does_not_count_against_a_right_one(fast_pair, 
 
     real = conf_mod.assess_estimate
 
-    def wrong_swap(moving_t, fixed_t, grid, params, fov, estimate=None, region=None):
+    def wrong_swap(moving_t, fixed_t, grid, params, fov, estimate=None, **kwargs):
         spoiled = None if estimate is None else (lambda m, f: estimate(m, f) + np.array([0.0, 15.0, 0, 0, 0, 0]))
-        return real(moving_t, fixed_t, grid, params, fov, spoiled, region=region)
+        return real(moving_t, fixed_t, grid, params, fov, spoiled, **kwargs)
 
     monkeypatch.setattr("monai_rigidreg.registration.assess_estimate", wrong_swap)
     res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
@@ -407,3 +409,65 @@ def test_edge_test_looks_inside_the_match_region_only(pair, small_registrar):
     inside = small_registrar.assess(mixed, f_t, grid, np.asarray(MOTION), fov, swap=False, region=region)
     assert whole["local_gain"] > LOCAL_GAIN_LIMIT, whole["local_gain"]
     assert inside["local_gain"] < LOCAL_GAIN_LIMIT / 2, inside["local_gain"]
+
+
+def test_tissue_on_air_separates_right_and_grossly_wrong_poses(pair, small_registrar):
+    """The gross-failure signal: at the true pose almost none of the CT's tissue in view lies on CBCT air; shifted
+    30 mm along x or turned 40 degrees about z (the phantom beside itself), a large share does (0.27, 0.16). An exact
+    computation on toy volumes pins the levels and the field-of-view restriction."""
+    from monai_rigidreg.confidence import AIR_HU, TISSUE_HU, tissue_on_air
+    from monai_rigidreg.warp import warp_volume_params
+
+    fixed, moving = load_volume(pair["fixed"]), load_volume(pair["moving"])
+    grid = small_registrar.network_grid(fixed)
+    f_t = small_registrar.preprocess(fixed, grid)[0]
+    m_t = small_registrar.preprocess(moving, grid)[0]
+    fov = torch.ones_like(f_t)
+
+    def at(params):
+        moved = warp_volume_params(m_t[None, None], torch.tensor([params], dtype=torch.float32), grid)[0, 0]
+        return tissue_on_air(f_t, moved, fov)
+
+    right = at(list(MOTION))
+    shifted = at([MOTION[0] + 30.0, *MOTION[1:]])
+    turned = at([*MOTION[:5], MOTION[5] + 40.0])
+    assert right < 0.02, right
+    assert shifted > 0.2 and turned > 0.1, (shifted, turned)
+    # toy volumes: 1000 tissue voxels in view, 250 of them on air; tissue outside the view does not count
+    lo, hi = -1000.0, 2000.0
+    norm = lambda hu: (hu - lo) / (hi - lo)  # noqa: E731
+    ct = torch.full((20, 10, 10), norm(TISSUE_HU - 100))
+    ct[:10] = norm(TISSUE_HU + 100)
+    cb = torch.full((20, 10, 10), norm(0.0))
+    cb[:10, :, :] = norm(0.0)
+    cb[:10, :5, :5] = norm(AIR_HU - 100)  # 250 voxels of air under tissue
+    view = torch.zeros(20, 10, 10)
+    view[:10] = 1.0
+    assert tissue_on_air(ct, cb, view) == pytest.approx(0.25)
+    cb[:10, :5, :5] = norm(AIR_HU + 100)  # just above the air level: no longer air
+    assert tissue_on_air(ct, cb, view) == 0.0
+    view[:] = 0.0
+    assert np.isnan(tissue_on_air(ct, cb, view))  # nothing in view: no signal
+
+
+def test_the_last_level_bias_degree_follows_the_match_region(fast_pair, shipped_registrar, monkeypatch):
+    """Without a match region the last level fits a constant bias (the bundle's native_bias_degree, 0), with
+    ``roi=`` the quadratic (native_bias_degree_roi, 2); details.native_level says which it used."""
+    import monai_rigidreg.registration as reg_mod
+
+    real = reg_mod.refine_native
+    seen = []
+
+    def record(*args, **kwargs):
+        seen.append(kwargs["bias_degree"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(reg_mod, "refine_native", record)
+    whole = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    c = Grid.from_sitk(load_volume(fast_pair["fixed"])).center()
+    box = [*(c - 60.0), *(c + 60.0)]
+    boxed = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False,
+                              roi=box)
+    assert whole.details["native_level"]["bias_degree"] == 0 and seen[0] == 0
+    assert boxed.details["native_level"]["bias_degree"] == 2 and seen[-1] == 2
+    assert _fast_pair_tre(fast_pair, whole) < 2.0 and _fast_pair_tre(fast_pair, boxed) < 2.0
