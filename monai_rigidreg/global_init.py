@@ -252,10 +252,11 @@ def matrix_distance_mm(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> floa
 
 
 def fov_similarity(fixed: sitk.Image, moving: sitk.Image, fov: sitk.Image, matrices: Sequence[np.ndarray],
-                   grid: Grid, hu_range: tuple[float, float]) -> list[float]:
+                   grid: Grid, hu_range: tuple[float, float], region: sitk.Image | None = None) -> list[float]:
     """For each fixed -> moving matrix, the NCC of the CBCT and the CT mapped into it, over the CBCT field of view on
     ``grid`` (a grid in the CBCT frame, so every estimate is scored on the same CBCT voxels; the CBCT and its field
-    of view are resampled once) and where the CT has data."""
+    of view are resampled once) and where the CT has data; with ``region`` (a CT-frame weight image, e.g. the
+    ``--roi`` box) only where it, mapped by the matrix, is above 0.5 (NaN where fewer than 10 voxels remain)."""
     a, b = hu_range
     cb = sitk_on_grid(moving, grid, "bilinear", a)[0].clamp(a, b)
     in_fov = sitk_on_grid(fov, grid, "nearest", 0.0)[0] > 0
@@ -268,7 +269,10 @@ def fov_similarity(fixed: sitk.Image, moving: sitk.Image, fov: sitk.Image, matri
         # only where the CT has data: the grid points mapped into the CT's index space
         idx = transform_points(to_index @ to_fixed, points)
         inside = np.all((idx >= 0) & (idx <= np.asarray(fixed.GetSize()) - 1), axis=1).reshape(grid.size)
-        out.append(fov_ncc(cb, ct, (in_fov & torch.from_numpy(inside)).to(torch.float32)))
+        mask = in_fov & torch.from_numpy(inside)
+        if region is not None:
+            mask &= sitk_on_grid(region, grid, "bilinear", 0.0, matrix=to_fixed)[0] > 0.5
+        out.append(fov_ncc(cb, ct, mask.to(torch.float32)))
     return out
 
 

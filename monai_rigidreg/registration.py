@@ -327,12 +327,14 @@ class RigidRegistrar:
         return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate, region=region, hu_range=self.hu_range)
 
     def _image_match(self, fixed_img: sitk.Image, moving_img: sitk.Image, fov_img: sitk.Image,
-                     matrices: list[np.ndarray]) -> list[float]:
+                     matrices: list[np.ndarray], region: sitk.Image | None = None) -> list[float]:
         """How well each fixed -> moving estimate matches the images: the NCC of the CBCT's field of view with the CT
         mapped into it (:func:`~monai_rigidreg.global_init.fov_similarity`) on the network grid pooled by 2, centred
-        on the CBCT. The one rule that chooses between starts and between an estimate and its swapped-input twin."""
+        on the CBCT; with a match region (``--roi``, ``--match bone``: ``region``, CT frame) inside it only, where
+        the user asked the images to match. The one rule that chooses between starts and between an estimate and
+        its swapped-input twin."""
         ref_grid = self.grid_spec.pooled(2).centered(Grid.from_sitk(moving_img).center())
-        return fov_similarity(fixed_img, moving_img, fov_img, matrices, ref_grid, self.hu_range)
+        return fov_similarity(fixed_img, moving_img, fov_img, matrices, ref_grid, self.hu_range, region=region)
 
     def _native(self, fixed_img: sitk.Image, moving_img: sitk.Image, matrix: np.ndarray, fov_img: sitk.Image,
                 weights: list[sitk.Image], region: bool = False) -> tuple[np.ndarray, Grid]:
@@ -488,7 +490,8 @@ class RigidRegistrar:
                 # best candidate, and the estimate whose CBCT field of view matches the CT better goes on
                 t = time.perf_counter()
                 alt = self._run_from(fixed_img, moving_img, best.matrix, cascade_steps, weights, timings, body)
-                s0, s1 = self._image_match(fixed_img, moving_img, fov_img, [run.total, alt.total])
+                s0, s1 = self._image_match(fixed_img, moving_img, fov_img, [run.total, alt.total],
+                                          weight_img)
                 search.update(identity_start_ncc=round(s0, 4), search_start_ncc=round(s1, 4))
                 if s1 > s0:
                     run = alt
@@ -555,7 +558,7 @@ class RigidRegistrar:
                 # after --refine, which the user asked to start from the network's estimate, and not for the
                 # learned network alone, fine_stage=False, which must stay measurable as it is)
                 s_est, s_swap = self._image_match(fixed_img, moving_img, fov_img,
-                                                  [params_to_matrix(params, grid_center), swapped])
+                                                  [params_to_matrix(params, grid_center), swapped], weight_img)
                 check = {"estimate_ncc": round(s_est, 4), "swapped_ncc": round(s_swap, 4),
                          "swap_tre_mm": round(signals["swap_tre_mm"], 2)}
                 if s_swap > s_est and staged and not refine and not replaced:

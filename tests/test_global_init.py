@@ -144,6 +144,35 @@ def test_roi_decides_which_of_two_differently_moving_halves_is_matched(ct, regis
     assert res_l.details["match_region"] == {"roi": list(box_left), "match": "soft"}
 
 
+def test_image_match_scores_inside_the_match_region(ct):
+    """fov_similarity with a region scores each estimate where the region lies: on a CBCT whose two halves moved
+    differently, the left half's motion wins inside a left box and the right half's inside a right box (the rule
+    that chooses between starts and the swapped-input estimate follows the user's ROI)."""
+    from monai_rigidreg.confidence import cylindrical_fov_mask
+    from monai_rigidreg.global_init import fov_similarity
+
+    left, right = [8.0, -3.0, 2.0, 0.0, 0.0, 4.0], [-4.0, 3.0, -3.0, 3.0, 0.0, -2.0]
+    cb_left = _cbct(ct, params_to_matrix(left, ISO), seed=5)
+    cb_right = _cbct(ct, params_to_matrix(right, ISO), seed=5)
+    arr = sitk.GetArrayFromImage(cb_left)
+    x = np.arange(64) * 2.0 + cb_left.GetOrigin()[0]
+    arr[:, :, x >= ISO[0]] = sitk.GetArrayViewFromImage(cb_right)[:, :, x >= ISO[0]]
+    cbct = sitk.GetImageFromArray(arr)
+    cbct.CopyInformation(cb_left)
+    fov = cylindrical_fov_mask(cbct)
+    grid = Grid.centered((32, 32, 32), (4.0, 4.0, 4.0), ISO)
+    matrices = [params_to_matrix(left, ISO), params_to_matrix(right, ISO)]
+    box_left = (ISO[0] - 54, ISO[1] - 40, ISO[2] - 40, ISO[0] - 10, ISO[1] + 40, ISO[2] + 40)
+    box_right = (ISO[0] + 10, ISO[1] - 40, ISO[2] - 40, ISO[0] + 54, ISO[1] + 40, ISO[2] + 40)
+    hu = (-1000.0, 2000.0)
+    s_left = fov_similarity(ct, cbct, fov, matrices, grid, hu, region=match_weight(ct, box_left, "soft"))
+    s_right = fov_similarity(ct, cbct, fov, matrices, grid, hu, region=match_weight(ct, box_right, "soft"))
+    assert s_left[0] > s_left[1] + 0.05, s_left
+    assert s_right[1] > s_right[0] + 0.05, s_right
+    whole = fov_similarity(ct, cbct, fov, matrices, grid, hu)
+    assert all(w < max(s_left[0], s_right[1]) for w in whole), whole  # the whole view mixes both halves
+
+
 def test_match_weight_box_on_an_oblique_ct_and_bone_mode(ct):
     # an oblique CT: the box is in physical LPS mm, whatever the direction cosines
     rot = params_to_matrix([0, 0, 0, 10.0, -20.0, 30.0])[:3, :3]
