@@ -3,17 +3,17 @@
 For every pair made by ``benchmarks/bench_clinical_geometry.py`` (``<pairs-dir>/<ct>/<group>_<nnn>/``), registers it
 with the default path (the deformed pairs with their 70 mm ``--roi`` box, as the benchmark does) and prints the
 error (TRE over the CT body points in the field of view; landmark error on deformed pairs), success (< 2 mm;
-deformed: < rigid floor + 2 mm), the confidence and its two signals (``details.signals``: ``local_gain``, the edge
+deformed: < rigid floor + 2 mm), the confidence and its three signals (``details.signals``: ``local_gain``, the edge
 alignment gained by a small perturbation, limit ``LOCAL_GAIN_LIMIT``; ``swap_tre_mm``, the disagreement with the
 swapped-input estimate, 3 mm gives 0.5; ``tissue_on_air``, the share of the CT's tissue in view that the estimate
 puts on CBCT air), and which start won. A success with confidence < 0.5 is a false alarm; the signal past its limit in
 each row says which test raised it.
 
 ``--spoil``: also the ``tissue_on_air`` signal at the true pose and at the true pose spoiled by each offset of
-``--translations`` (mm, along a random direction) and ``--rotations`` (degrees, about a random axis through the
-isocentre), seeded; computed on the network grid as the registrar does (the CT without its couch, the CBCT resampled
-through the pose), one interpolation instead of the registrar's two. Its table gives the signal's distribution for
-right poses (truth, and the deformed pairs) and for wrong ones.
+``--translations`` (mm, along a random direction) and ``--rotations`` (degrees, about one of the three coordinate
+axes through the isocentre, drawn at random), seeded; computed on the network grid as the registrar does (the CT
+without its couch, the CBCT resampled through the pose), one interpolation instead of the registrar's two. Its table
+gives the signal's distribution for right poses (truth, and the deformed pairs) and for wrong ones.
 
 Usage::
 

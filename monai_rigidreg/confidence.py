@@ -126,6 +126,11 @@ def tissue_on_air(
     around the patient, on lung or on gas; a right pose leaves only the anatomy that changed between the scans (a
     few percent on the deformed clinical-geometry pairs, ``benchmarks/bench_confidence_clinical.py``). Unlike the
     edge test it does not depend on the estimate being near an optimum, only on where tissue and air lie.
+
+    It looks at the whole field of view, also with a match region (``--roi``): its calibration
+    (:data:`TISSUE_ON_AIR_LIMIT`) includes the deformed pairs registered with their ROI box. It expects the couch
+    removed from ``fixed`` (the registrar's default): with ``keep_couch`` the CT's couch counts as tissue wherever the
+    CBCT has none, which raises the signal by the couch's share of the tissue in view.
     """
     lo, hi = hu_range
     tissue = (fixed > (TISSUE_HU - lo) / (hi - lo)) & (fov > 0.5)

@@ -171,16 +171,18 @@ class RigidRegistrar:
             100 % up to 40 mm / 30 degrees and from 75 to 85 % up to 60 mm / 45 degrees; on the paper-protocol pairs
             (128 mm CBCTs) it moved the mean TRE from 0.33 to 0.49 mm (all still under 2 mm). On by default;
             ``--no-native-level`` turns it off.
-        native_bias_degree: the intensity bias the last level estimates with the pose (a polynomial of this degree
-            per feature channel, :func:`~monai_rigidreg.networks.gauss_newton.gauss_newton_align`; -1: none; the
-            bundle's ``native_bias_degree``: 2, the fine stage's). Measured on the clinical-geometry pairs
-            (``python benchmarks/bench_native_bias.py``): without a region of interest a constant (0) is more precise
-            (mean TRE over 18 successes 0.46 mm instead of 0.59, ``bench_native_bias_2026-12-02.txt``), with the
-            ``--roi`` box on deformed anatomy the quadratic is (mean landmark error 2.05 mm instead of 2.11, one pair
-            lost with 0, ``bench_native_bias_deformed_2026-12-02.txt``), and with 0 the flag missed a 128 mm failure
-            it caught with 2 (confidence 0.56 instead of 0.45, ``bench_clinical_geometry_0.4.2_native_bias0_...``):
-            2 stays the default until the flag no longer hangs on that margin. A constant absorbs a CBCT's HU offset
-            from the CT (``tests/test_precision.py``).
+        native_bias_degree: the intensity bias the last level estimates with the pose over the whole field of view
+            (a polynomial of this degree per feature channel,
+            :func:`~monai_rigidreg.networks.gauss_newton.gauss_newton_align`; -1: none). The constructor's default
+            (2, the fine stage's) is kept for code that builds a registrar by hand; the shipped bundle's
+            ``native_bias_degree`` is 0 since 0.4.3. Measured on the clinical-geometry pairs (``python
+            benchmarks/bench_native_bias.py``): without a region of interest a constant is more precise (mean TRE
+            over 18 successes 0.46 mm instead of 0.59, ``bench_native_bias_2026-12-02.txt``). A constant absorbs a
+            CBCT's HU offset from the CT (``tests/test_precision.py``).
+        native_bias_degree_roi: the same with a match region (``--roi``, ``--match bone``); ``None``: the same as
+            ``native_bias_degree`` (the bundle's ``native_bias_degree_roi``, 2, is used by ``from_bundle`` unless
+            overridden too). With the ``--roi`` box on deformed anatomy the quadratic is more precise (mean landmark
+            error 2.05 mm instead of 2.11, one pair lost with 0, ``bench_native_bias_deformed_2026-12-02.txt``).
 
     Build it once and reuse it: ``registrar = RigidRegistrar.from_bundle()`` then
     ``monai_rigidreg.register(ct, cbct, model=registrar)`` (or ``registrar(ct, cbct)``).
@@ -331,10 +333,17 @@ class RigidRegistrar:
         """How well each fixed -> moving estimate matches the images: the NCC of the CBCT's field of view with the CT
         mapped into it (:func:`~monai_rigidreg.global_init.fov_similarity`) on the network grid pooled by 2, centred
         on the CBCT; with a match region (``--roi``, ``--match bone``: ``region``, CT frame) inside it only, where
-        the user asked the images to match. The one rule that chooses between starts and between an estimate and
+        the user asked the images to match (over the whole field of view where the region leaves fewer than 10
+        voxels for an estimate). The one rule that chooses between starts and between an estimate and
         its swapped-input twin."""
         ref_grid = self.grid_spec.pooled(2).centered(Grid.from_sitk(moving_img).center())
-        return fov_similarity(fixed_img, moving_img, fov_img, matrices, ref_grid, self.hu_range, region=region)
+        scores = fov_similarity(fixed_img, moving_img, fov_img, matrices, ref_grid, self.hu_range, region=region)
+        if region is not None and not np.all(np.isfinite(scores)):
+            # the region leaves (almost) no voxel of this grid for some estimate (an ROI off the CBCT's centre, or an
+            # estimate that moves it out of view): NaN compares as neither better nor worse, so all are scored over
+            # the whole field of view instead
+            scores = fov_similarity(fixed_img, moving_img, fov_img, matrices, ref_grid, self.hu_range)
+        return scores
 
     def _native(self, fixed_img: sitk.Image, moving_img: sitk.Image, matrix: np.ndarray, fov_img: sitk.Image,
                 weights: list[sitk.Image], region: bool = False) -> tuple[np.ndarray, Grid]:

@@ -39,6 +39,19 @@ def _cbct(ct: sitk.Image, matrix: np.ndarray, seed: int = 0) -> sitk.Image:
     return out
 
 
+def _two_halves(ct: sitk.Image, left: list[float], right: list[float], seed: int) -> sitk.Image:
+    """A CBCT (as :func:`_cbct`) whose half x < ISO_x moved by ``left`` and half x >= ISO_x by ``right`` (params
+    about the isocentre)."""
+    cb_left = _cbct(ct, params_to_matrix(left, ISO), seed=seed)
+    cb_right = _cbct(ct, params_to_matrix(right, ISO), seed=seed)
+    arr = sitk.GetArrayFromImage(cb_left)
+    x = np.arange(64) * 2.0 + cb_left.GetOrigin()[0]
+    arr[:, :, x >= ISO[0]] = sitk.GetArrayViewFromImage(cb_right)[:, :, x >= ISO[0]]
+    cbct = sitk.GetImageFromArray(arr)
+    cbct.CopyInformation(cb_left)
+    return cbct
+
+
 def _brute_ncc(volume, template, mask, shift):
     x, y, z = template.shape
     win = volume[shift[0]:shift[0] + x, shift[1]:shift[1] + y, shift[2]:shift[2] + z]
@@ -123,13 +136,7 @@ def test_default_registration_recovers_60mm_40deg(ct, registrar):
 def test_roi_decides_which_of_two_differently_moving_halves_is_matched(ct, registrar):
     # the half x < ISO_x moved by one motion, the half x >= ISO_x by another (6 mm and 3 degrees apart)
     left, right = [4.0, -3.0, 2.0, 0.0, 0.0, 2.0], [-2.0, 3.0, -3.0, 2.0, 0.0, -1.0]
-    cb_left = _cbct(ct, params_to_matrix(left, ISO), seed=3)
-    cb_right = _cbct(ct, params_to_matrix(right, ISO), seed=3)
-    arr = sitk.GetArrayFromImage(cb_left)
-    x = np.arange(64) * 2.0 + cb_left.GetOrigin()[0]
-    arr[:, :, x >= ISO[0]] = sitk.GetArrayViewFromImage(cb_right)[:, :, x >= ISO[0]]
-    cbct = sitk.GetImageFromArray(arr)
-    cbct.CopyInformation(cb_left)
+    cbct = _two_halves(ct, left, right, seed=3)
     # the ROI boxes stay 10 mm clear of the cut (the halves' CT regions differ by the motions, a few mm)
     box_left = (ISO[0] - 54, ISO[1] - 40, ISO[2] - 40, ISO[0] - 10, ISO[1] + 40, ISO[2] + 40)
     box_right = (ISO[0] + 10, ISO[1] - 40, ISO[2] - 40, ISO[0] + 54, ISO[1] + 40, ISO[2] + 40)
@@ -152,13 +159,7 @@ def test_image_match_scores_inside_the_match_region(ct):
     from monai_rigidreg.global_init import fov_similarity
 
     left, right = [8.0, -3.0, 2.0, 0.0, 0.0, 4.0], [-4.0, 3.0, -3.0, 3.0, 0.0, -2.0]
-    cb_left = _cbct(ct, params_to_matrix(left, ISO), seed=5)
-    cb_right = _cbct(ct, params_to_matrix(right, ISO), seed=5)
-    arr = sitk.GetArrayFromImage(cb_left)
-    x = np.arange(64) * 2.0 + cb_left.GetOrigin()[0]
-    arr[:, :, x >= ISO[0]] = sitk.GetArrayViewFromImage(cb_right)[:, :, x >= ISO[0]]
-    cbct = sitk.GetImageFromArray(arr)
-    cbct.CopyInformation(cb_left)
+    cbct = _two_halves(ct, left, right, seed=5)
     fov = cylindrical_fov_mask(cbct)
     grid = Grid.centered((32, 32, 32), (4.0, 4.0, 4.0), ISO)
     matrices = [params_to_matrix(left, ISO), params_to_matrix(right, ISO)]
@@ -171,6 +172,30 @@ def test_image_match_scores_inside_the_match_region(ct):
     assert s_right[1] > s_right[0] + 0.05, s_right
     whole = fov_similarity(ct, cbct, fov, matrices, grid, hu)
     assert all(w < max(s_left[0], s_right[1]) for w in whole), whole  # the whole view mixes both halves
+    # the region rides into the CBCT frame through the estimate's inverse: a 20 mm slab of the CT 90 mm beside the
+    # isocentre, under an estimate moving CT points +90 mm along x, lies in the grid's middle; the same slab under the
+    # identity lies outside the 128 mm grid (fewer than 10 voxels: NaN)
+    shift = params_to_matrix([90.0, 0.0, 0.0, 0.0, 0.0, 0.0], ISO)
+    slab = match_weight(ct, (ISO[0] - 100, ISO[1] - 40, ISO[2] - 40, ISO[0] - 80, ISO[1] + 40, ISO[2] + 40), "soft")
+    scored, outside = fov_similarity(ct, cbct, fov, [shift, np.eye(4)], grid, hu, region=slab)
+    assert np.isfinite(scored) and np.isnan(outside)
+
+
+def test_image_match_falls_back_to_the_whole_view_when_the_region_is_out_of_it(ct, registrar):
+    """An ROI that the registrar's scoring grid does not see (NaN) is not allowed to decide: both estimates are then
+    scored over the whole field of view (NaN would compare as neither better nor worse)."""
+    from monai_rigidreg.confidence import cylindrical_fov_mask
+    from monai_rigidreg.global_init import fov_similarity
+
+    cbct = _two_halves(ct, [8.0, -3.0, 2.0, 0.0, 0.0, 4.0], [-4.0, 3.0, -3.0, 3.0, 0.0, -2.0], seed=5)
+    fov = cylindrical_fov_mask(cbct)
+    far = match_weight(ct, (ISO[0] - 140, ISO[1] - 40, ISO[2] - 40, ISO[0] - 110, ISO[1] + 40, ISO[2] + 40), "soft")
+    matrices = [params_to_matrix([8.0, -3.0, 2.0, 0.0, 0.0, 4.0], ISO), np.eye(4)]
+    ref_grid = registrar.grid_spec.pooled(2).centered(Grid.from_sitk(cbct).center())
+    assert np.all(np.isnan(fov_similarity(ct, cbct, fov, matrices, ref_grid, registrar.hu_range, region=far)))
+    scores = registrar._image_match(ct, cbct, fov, matrices, far)
+    assert np.all(np.isfinite(scores))
+    assert scores == pytest.approx(registrar._image_match(ct, cbct, fov, matrices))
 
 
 def test_match_weight_box_on_an_oblique_ct_and_bone_mode(ct):

@@ -141,6 +141,11 @@ def test_confidence_flags_deliberately_failed_registrations(pair, small_registra
     assert all(b["confidence"] < 0.5 for b in bad), [round(b["local_gain"], 4) for b in bad]
     # swapped-input disagreement alone also flags
     assert confidence_score(0.0, 8.0) < 0.5 and confidence_score(0.0, 0.5) > 0.5
+    # and so does tissue on air alone (TISSUE_ON_AIR_LIMIT 0.06 scores 0.5); not measured (NaN): no effect
+    assert confidence_score(0.0, 0.5, tissue_on_air_share=0.15) < 0.01
+    assert confidence_score(0.0, 0.5, tissue_on_air_share=0.0) == pytest.approx(confidence_score(0.0, 0.5))
+    assert confidence_score(0.0, 0.5, tissue_on_air_share=0.06) == pytest.approx(0.5, abs=0.02)
+    assert confidence_score(0.0, 0.5, tissue_on_air_share=float("nan")) == confidence_score(0.0, 0.5)
 
 
 def test_register_command_with_dicom_and_overwrite_rules(pair, tmp_path, monkeypatch, small_registrar):
@@ -444,6 +449,16 @@ def test_tissue_on_air_separates_right_and_grossly_wrong_poses(pair, small_regis
     view = torch.zeros(20, 10, 10)
     view[:10] = 1.0
     assert tissue_on_air(ct, cb, view) == pytest.approx(0.25)
+    # tissue on air outside the view does not count
+    ct_out, cb_out = ct.clone(), cb.clone()
+    ct_out[10:] = norm(TISSUE_HU + 100)
+    cb_out[10:, :, :5] = norm(AIR_HU - 100)
+    assert tissue_on_air(ct_out, cb_out, view) == pytest.approx(0.25)
+    # another normalization window: the levels follow it
+    lo2, hi2 = -1200.0, 3000.0
+    renorm = lambda t: ((t * (hi - lo) + lo) - lo2) / (hi2 - lo2)  # noqa: E731
+    assert tissue_on_air(renorm(ct), renorm(cb), view, (lo2, hi2)) == pytest.approx(0.25)
+    assert tissue_on_air(renorm(ct), renorm(cb), view) != pytest.approx(0.25)
     cb[:10, :5, :5] = norm(AIR_HU + 100)  # just above the air level: no longer air
     assert tissue_on_air(ct, cb, view) == 0.0
     view[:] = 0.0
@@ -468,6 +483,12 @@ def test_the_last_level_bias_degree_follows_the_match_region(fast_pair, shipped_
     box = [*(c - 60.0), *(c + 60.0)]
     boxed = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False,
                               roi=box)
+    # the registrar scores its estimate with the tissue-on-air signal too
+    sig = whole.details["signals"]
+    assert 0.0 <= sig["tissue_on_air"] < 0.02
+    assert whole.confidence == pytest.approx(confidence_score(sig["local_gain"], sig["swap_tre_mm"],
+                                                              swap_counted=sig.get("swap_counted", True),
+                                                              tissue_on_air_share=sig["tissue_on_air"]))
     assert whole.details["native_level"]["bias_degree"] == 0 and seen[0] == 0
     assert boxed.details["native_level"]["bias_degree"] == 2 and seen[-1] == 2
     assert _fast_pair_tre(fast_pair, whole) < 2.0 and _fast_pair_tre(fast_pair, boxed) < 2.0
