@@ -97,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
                            **options)
     summary = json.loads(paths["result.json"].read_text())
     couch = summary.get("couch_shift", {})
-    print(json.dumps({"params": summary["params"], "confidence": round(summary["confidence"], 3),
+    confidence = summary["confidence"]  # null in result.json where the check did not run
+    print(json.dumps({"params": summary["params"], "confidence": None if confidence is None else round(confidence, 3),
                       "flagged": summary["flagged"], "runtime_s": summary["runtime_s"],
                       "couch_shift_6dof": {k: round(v, 2) for k, v in couch.get("6dof", {}).items()},
                       "couch_shift_3dof": {k: round(v, 2) for k, v in couch.get("3dof", {}).items()},

@@ -14,6 +14,7 @@ import contextlib
 import functools
 import inspect
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -123,7 +124,7 @@ class RegistrationResult:
             "matrix_moving_to_fixed_ras": [[float(v) for v in row]
                                            for row in LPS_TO_RAS @ invert_matrix(self.matrix) @ LPS_TO_RAS],
             "runtime_s": {k: round(float(v), 4) for k, v in self.timings.items()},
-            "confidence": float(self.confidence),
+            "confidence": _jsonable(float(self.confidence)),  # null where the check did not run
             "flagged": bool(self.flagged),
             "details": _jsonable(self.details),
             "provenance": _jsonable(self.provenance),
@@ -132,6 +133,8 @@ class RegistrationResult:
 
 
 def _jsonable(x: Any) -> Any:
+    """``x`` with numpy scalars and arrays as Python values and non-finite floats (a signal that was not measured,
+    e.g. ``tissue_on_air`` with no tissue in view) as ``None``: strict JSON has no NaN or Infinity."""
     if isinstance(x, dict):
         return {str(k): _jsonable(v) for k, v in x.items()}
     if isinstance(x, (list, tuple)):
@@ -139,7 +142,9 @@ def _jsonable(x: Any) -> Any:
     if isinstance(x, np.ndarray):
         return _jsonable(x.tolist())
     if isinstance(x, (np.floating, np.integer)):
-        return x.item()
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
     return x
 
 

@@ -493,3 +493,21 @@ def test_the_last_level_bias_degree_follows_the_match_region(fast_pair, shipped_
     assert boxed.details["native_level"]["bias_degree"] == 2 and seen[-1] == 2
     assert _fast_pair_tre(fast_pair, whole) < 2.0 and _fast_pair_tre(fast_pair, boxed) < 2.0
 
+
+
+def test_result_json_is_strict_json_with_unmeasured_signals_as_null():
+    """A signal that was not measured (NaN: no tissue in view, a check that did not run) is written as null, so
+    strict JSON readers (allow_nan=False here) accept result.json; finite values and numpy scalars pass as numbers."""
+    from monai_rigidreg.registration import RegistrationResult
+
+    res = RegistrationResult(np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0]), np.zeros(3), None, {"total": 1.5},
+                             float("nan"), False,
+                             {"signals": {"tissue_on_air": float("nan"), "local_gain": np.float32(0.002),
+                                          "swap_tre_mm": np.float64(np.inf)}, "grid": np.array([64, 64, 64])})
+    text = json.dumps(res.to_dict(), allow_nan=False)
+    back = json.loads(text)
+    assert back["confidence"] is None
+    assert back["details"]["signals"]["tissue_on_air"] is None and back["details"]["signals"]["swap_tre_mm"] is None
+    assert back["details"]["signals"]["local_gain"] == pytest.approx(0.002)
+    assert back["details"]["grid"] == [64, 64, 64]
+    assert back["params"]["tx"] == 1.0
