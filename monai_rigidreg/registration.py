@@ -14,7 +14,6 @@ import contextlib
 import functools
 import inspect
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -56,6 +55,7 @@ from monai_rigidreg.geometry import (
 from monai_rigidreg.global_init import SEARCH_AGREE_MM, fov_similarity, global_search, matrix_distance_mm
 from monai_rigidreg.grid_sampling import normalize_hu, sitk_on_grid
 from monai_rigidreg.io import as_image, check_distinct_inputs, grids_overlap, resample
+from monai_rigidreg.json_safe import json_safe
 from monai_rigidreg.match_region import RoiLike, match_weight, parse_roi, weight_on_grid
 from monai_rigidreg.network_grid import NetworkGridSpec
 from monai_rigidreg.networks import cascade_register
@@ -124,29 +124,12 @@ class RegistrationResult:
             "matrix_moving_to_fixed_ras": [[float(v) for v in row]
                                            for row in LPS_TO_RAS @ invert_matrix(self.matrix) @ LPS_TO_RAS],
             "runtime_s": {k: round(float(v), 4) for k, v in self.timings.items()},
-            "confidence": _jsonable(float(self.confidence)),  # null where the check did not run
+            "confidence": json_safe(float(self.confidence)),  # null where the check did not run
             "flagged": bool(self.flagged),
-            "details": _jsonable(self.details),
-            "provenance": _jsonable(self.provenance),
-            **({"couch_shift": _jsonable(self.couch_shift)} if self.couch_shift else {}),
+            "details": json_safe(self.details),
+            "provenance": json_safe(self.provenance),
+            **({"couch_shift": json_safe(self.couch_shift)} if self.couch_shift else {}),
         }
-
-
-def _jsonable(x: Any) -> Any:
-    """``x`` with numpy scalars and arrays as Python values and non-finite floats (a signal that was not measured,
-    e.g. ``tissue_on_air`` with no tissue in view) as ``None``: strict JSON has no NaN or Infinity."""
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.floating, np.integer)):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
 
 
 class RigidRegistrar:

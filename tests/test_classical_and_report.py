@@ -121,3 +121,23 @@ def test_qc_figure_with_transform_outlines_the_field_of_view(tmp_path, pair):
     arr = sitk.GetArrayFromImage(sitk.ReadImage(str(p)))
     yellow = (arr[..., 0] > 200) & (arr[..., 1] > 200) & (arr[..., 2] < 80)
     assert yellow.sum() > 500  # orientation letters and the field-of-view outline are drawn in yellow
+
+
+def test_summary_json_is_strict_json_when_a_case_has_no_error(tmp_path):
+    """A case whose error could not be measured (NaN TRE, no confidence) is written as null in summary.json, which
+    strict readers then accept; the other case's numbers are unchanged."""
+    import json
+
+    from monai_rigidreg.evaluation.report import CaseResult, write_report
+
+    cases = [CaseResult("a", "net", [15, 0, 0, 0, 0, 0], [14, 0.5, 0, 0, 0, 0.2], 1.0, 0.1,
+                        extra={"confidence": 0.9, "flagged": False}),
+             CaseResult("b", "net", [0, 15, 0, 0, 0, 0], [0, 12, 0, 0, 0, 0], float("nan"), 0.3,
+                        extra={"confidence": float("nan"), "flagged": True})]
+    paths = write_report(cases, tmp_path)
+    text = paths["json"].read_text()
+    assert "NaN" not in text
+    data = json.loads(text)
+    by_id = {c["case_id"]: c for c in data["cases"]}
+    assert by_id["b"]["tre_mm"] is None and by_id["b"]["extra"]["confidence"] is None
+    assert by_id["a"]["tre_mm"] == 1.0 and by_id["a"]["extra"]["confidence"] == 0.9

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from monai_rigidreg.geometry import PARAM_NAMES, parameter_errors
+from monai_rigidreg.json_safe import json_safe
 
 __all__ = ["CaseResult", "ReportTable", "motion_conditions", "summarize", "report_tables", "format_report",
            "write_report", "SUCCESS_TRE_MM"]
@@ -197,7 +198,7 @@ def write_report(cases: Sequence[CaseResult], output_dir: str | Path) -> dict[st
                         f"{c.tre_mm:.4f}", int(c.success), f"{c.runtime_s:.4f}",
                         "" if conf is None else f"{float(conf):.4f}",
                         "" if "flagged" not in c.extra else int(bool(c.extra["flagged"]))])
-    paths["json"].write_text(json.dumps({"summary": summary, "cases": [asdict(c) for c in cases]}, indent=1),
-                             encoding="utf-8")
+    paths["json"].write_text(json.dumps(json_safe({"summary": summary, "cases": [asdict(c) for c in cases]}),
+                                        indent=1, allow_nan=False), encoding="utf-8")
     paths["report"].write_text(format_report(summary), encoding="utf-8")
     return paths
