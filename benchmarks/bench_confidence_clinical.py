@@ -60,20 +60,13 @@ def _spoiled_poses(case: Any, translations: list[float], rotations: list[float],
 
 
 def _tissue_on_air_at(registrar: Any, ct: Any, cbct: Any, fov: Any, matrix: np.ndarray) -> float:
-    """:func:`~monai_rigidreg.confidence.tissue_on_air` of a pose on the network grid the registrar would use from
-    that pose (centred on the CT point mapped to the CBCT centre), the CT without its couch."""
-    from monai_rigidreg.body import without_couch
+    """:func:`~monai_rigidreg.confidence.tissue_on_air` of a pose on the grid and tensors the registrar would use
+    from that pose as a start (``RigidRegistrar._start_tensors``: the CT without its couch, the CBCT through the
+    pose), the field of view eroded as ``assess_estimate`` erodes it."""
     from monai_rigidreg.confidence import tissue_on_air
-    from monai_rigidreg.geometry import Grid, invert_matrix, transform_points
     from monai_rigidreg.image_ops import erode
 
-    center = transform_points(invert_matrix(matrix), Grid.from_sitk(cbct).center()[None])[0]
-    grid = registrar.grid_spec.centered(center)
-    fixed_t = registrar.preprocess(ct, grid)
-    body = registrar._bodies(ct)
-    if body is not None:
-        fixed_t = without_couch(fixed_t, registrar._on_grid(body, grid, "bilinear", 0.0), registrar.hu_range)
-    moved = registrar.preprocess(cbct, grid, matrix)
+    grid, fixed_t, moved = registrar._start_tensors(ct, cbct, matrix, registrar._bodies(ct))
     fov_t = registrar._on_grid(fov, grid, "nearest", 0.0, matrix)
     fov_e = erode(fov_t[None], (2, 2, 2))[0, 0]
     return tissue_on_air(fixed_t[0], moved[0], fov_e, registrar.hu_range)

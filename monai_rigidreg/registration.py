@@ -334,25 +334,22 @@ class RigidRegistrar:
         return scores
 
     def _native(self, fixed_img: sitk.Image, moving_img: sitk.Image, matrix: np.ndarray, fov_img: sitk.Image,
-                weights: list[sitk.Image], region: bool = False) -> tuple[np.ndarray, Grid]:
-        """The last level (:func:`~monai_rigidreg.precision.refine_native`) with the fine stage's feature settings
-        and this registrar's ``native_bias_degree`` (``native_bias_degree_roi`` when ``region``: a match region,
-        ``--roi`` or ``--match bone``, is among ``weights``)."""
+                weights: list[sitk.Image], grid: Grid, region: bool = False) -> tuple[np.ndarray, dict[str, Any]]:
+        """The last level (:func:`~monai_rigidreg.precision.refine_native`) from ``matrix`` with the fine stage's
+        feature settings and this registrar's ``native_bias_degree`` (``native_bias_degree_roi`` when ``region``: a
+        match region, ``--roi`` or ``--match bone``, is among ``weights``). Returns the refined matrix and
+        ``details.native_level``: the level's grid, bias degree and how far it moved the estimate (mean distance over
+        the points of ``grid``, the network grid, mm)."""
         stage = self.network.fine_stage
         degree = self.native_bias_degree_roi if region else self.native_bias_degree
-        return refine_native(
+        refined, native_grid = refine_native(
             fixed_img, moving_img, matrix, fov_img, weights, highpass_sigma_mm=stage.highpass_sigma_mm,
             highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
             bias_degree=degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
             secant=getattr(stage, "secant", False))
-
-    def _native_detail(self, native_grid: Grid, refined: np.ndarray, start: np.ndarray, grid: Grid,
-                       region: bool) -> dict[str, Any]:
-        """``details.native_level``: the last level's grid, bias degree and how far it moved the estimate (mean
-        distance over the network grid's points, mm)."""
-        return {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size),
-                "bias_degree": self.native_bias_degree_roi if region else self.native_bias_degree,
-                "change_mm": round(matrix_distance_mm(refined, start, grid_points(grid, 8)), 3)}
+        detail = {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size), "bias_degree": degree,
+                  "change_mm": round(matrix_distance_mm(refined, matrix, grid_points(grid, 8)), 3)}
+        return refined, detail
 
     def __call__(
         self,
@@ -384,14 +381,11 @@ class RigidRegistrar:
         result.details["fine_stage"] = bool(used)
         return result
 
-    def _run_from(self, fixed_img: sitk.Image, moving_img: sitk.Image, start: np.ndarray, steps: int | None,
-                  weights: Sequence[sitk.Image], timings: dict[str, float], body: sitk.Image | None = None) -> _Run:
-        """The network from a start (4x4 fixed -> moving, LPS mm): the grid is centred on the CT point the start
-        maps to the CBCT centre, the CBCT is sampled through the start (one interpolation), the network estimates
-        the residual and the total is ``start o residual``. ``weights``: CT-frame images whose product on the grid
-        is the match weight; ``body``: the CT's body (tissue-like voxels outside it, the couch, become air). Adds to
-        ``timings["preprocess"]`` and ``["network"]``."""
-        t = time.perf_counter()
+    def _start_tensors(self, fixed_img: sitk.Image, moving_img: sitk.Image, start: np.ndarray,
+                       body: sitk.Image | None = None) -> tuple[Grid, torch.Tensor, torch.Tensor]:
+        """The network grid for a start (4x4 fixed -> moving, LPS mm), centred on the CT point the start maps to the
+        CBCT centre, and ``[1, x, y, z]`` normalized CT and CBCT on it: the CBCT sampled through the start (one
+        interpolation), the CT with its tissue-like voxels outside ``body`` (the couch) set to air."""
         sampling = None if np.allclose(start, np.eye(4)) else start
         center = Grid.from_sitk(moving_img).center()
         if sampling is not None:
@@ -401,6 +395,16 @@ class RigidRegistrar:
         moving_t = self.preprocess(moving_img, grid, sampling)
         if body is not None:
             fixed_t = without_couch(fixed_t, self._on_grid(body, grid, "bilinear", 0.0), self.hu_range)
+        return grid, fixed_t, moving_t
+
+    def _run_from(self, fixed_img: sitk.Image, moving_img: sitk.Image, start: np.ndarray, steps: int | None,
+                  weights: Sequence[sitk.Image], timings: dict[str, float], body: sitk.Image | None = None) -> _Run:
+        """The network from a start (4x4 fixed -> moving, LPS mm) on :meth:`_start_tensors`' grid and tensors: the
+        network estimates the residual and the total is ``start o residual``. ``weights``: CT-frame images whose
+        product on the grid is the match weight; ``body``: the CT's body (tissue-like voxels outside it, the couch,
+        become air). Adds to ``timings["preprocess"]`` and ``["network"]``."""
+        t = time.perf_counter()
+        grid, fixed_t, moving_t = self._start_tensors(fixed_img, moving_img, start, body)
         weight_t = weight_on_grid(weights, grid)
         timings["preprocess"] = timings.get("preprocess", 0.0) + time.perf_counter() - t
         t = time.perf_counter()
@@ -501,12 +505,10 @@ class RigidRegistrar:
         params = net_params.copy()
         if native:
             t = time.perf_counter()
-            refined, native_grid = self._native(fixed_img, moving_img, run.total, fov_img, weights,
-                                               region=weight_img is not None)
+            refined, details["native_level"] = self._native(fixed_img, moving_img, run.total, fov_img, weights, grid,
+                                                            region=weight_img is not None)
             params = matrix_to_params(refined, grid_center)
             net_params = params.copy()
-            details["native_level"] = self._native_detail(native_grid, refined, run.total, grid,
-                                                          weight_img is not None)
             timings["native_level"] = time.perf_counter() - t
 
         fov_t = None
@@ -563,11 +565,8 @@ class RigidRegistrar:
                     details["swap_check"] = {**check, "replaced": True}
                     if native:
                         # the last level from the swapped estimate: details.native_level describes this run
-                        start_swapped = swapped
-                        swapped, swapped_grid = self._native(fixed_img, moving_img, swapped, fov_img, weights,
-                                                             region=weight_img is not None)
-                        details["native_level"] = self._native_detail(swapped_grid, swapped, start_swapped, grid,
-                                                                      weight_img is not None)
+                        swapped, details["native_level"] = self._native(fixed_img, moving_img, swapped, fov_img,
+                                                                        weights, grid, region=weight_img is not None)
                     params = matrix_to_params(swapped, grid_center)
                     net_params = params.copy()
                     details["start"] = "swapped"

@@ -101,7 +101,7 @@ def test_registrar_passes_its_native_bias_degree_to_the_last_level(monkeypatch):
         assert (registrar.native_bias_degree, registrar.native_bias_degree_roi) == (whole, roi)
         for region, degree in ((False, whole), (True, roi)):
             with pytest.raises(RuntimeError, match="stop"):
-                registrar._native(None, None, np.eye(4), None, [], region=region)
+                registrar._native(None, None, np.eye(4), None, [], None, region=region)
             assert seen[-1] == degree
     with pytest.raises(InputError, match="native_bias_degree"):
         reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=-2)
