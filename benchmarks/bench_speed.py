@@ -28,6 +28,7 @@ Usage::
     python benchmarks/bench_speed.py --output-dir bench_out/speed --cases 6 \
         --results benchmarks/results/bench_speed_<date>.txt
     python benchmarks/bench_speed.py ... --wait-policy ACTIVE   # libgomp's default spinning, for comparison
+    python benchmarks/bench_speed.py ... --spin-count 10000     # GOMP_SPINCOUNT: spin this long before sleeping
 """
 
 from __future__ import annotations
@@ -44,6 +45,8 @@ from pathlib import Path
 
 if "--wait-policy" in sys.argv:  # before anything loads libgomp
     os.environ["OMP_WAIT_POLICY"] = sys.argv[sys.argv.index("--wait-policy") + 1]
+if "--spin-count" in sys.argv:
+    os.environ["GOMP_SPINCOUNT"] = sys.argv[sys.argv.index("--spin-count") + 1]
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -177,6 +180,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=18000)
     ap.add_argument("--cli-repeats", type=int, default=3)
     ap.add_argument("--wait-policy", default=None, help="OMP_WAIT_POLICY for this run (default: the package's)")
+    ap.add_argument("--spin-count", default=None, help="GOMP_SPINCOUNT for this run (default: the package's)")
     ap.add_argument("--skip", nargs="*", default=[], choices=["startup", "cli", "load", "batch"])
     ap.add_argument("--results", type=Path, default=None)
     ap.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
@@ -192,7 +196,8 @@ def main() -> None:
     out(f"command: python {' '.join(sys.argv)}")
     out(f"date: {time.strftime('%Y-%m-%dT%H:%M:%S%z')}; machine: {os.cpu_count()} CPU cores; torch "
         f"{torch.__version__} ({torch.get_num_threads()} threads), SimpleITK {sitk.Version_VersionString()}, "
-        f"monai-rigidreg {monai_rigidreg.__version__}; OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
+        f"monai-rigidreg {monai_rigidreg.__version__}; OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, "
+        f"GOMP_SPINCOUNT={os.environ.get('GOMP_SPINCOUNT')}")
     out(f"load average at start (1/5/15 min): {load_text()}")
     cts = find_cts([CT_NAME], out, (CT_NAME,))
     if not cts:
@@ -284,7 +289,8 @@ def main() -> None:
         for label, cmd in [("one single-threaded busy loop", [sys.executable, "-c", "while True: pass"]),
                            ("a second registration process (same cases, in a loop)",
                             [sys.executable, os.path.abspath(__file__), "--worker", str(cases_file)]
-                            + (["--wait-policy", args.wait_policy] if args.wait_policy else []))]:
+                            + (["--wait-policy", args.wait_policy] if args.wait_policy else [])
+                            + (["--spin-count", args.spin_count] if args.spin_count else []))]:
             proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             try:
                 time.sleep(3.0 if "busy" in label else 15.0)  # the second registrar loads its model first

@@ -38,7 +38,7 @@ __all__ = [
 ]
 
 Padding = Literal["zeros", "replicate", "valid"]
-Method = Literal["auto", "shifted", "conv"]
+Method = Literal["auto", "shifted", "conv", "matrix"]
 
 SHIFTED_SUM_MAX_TAPS: int = 301
 """Longest kernel (taps) that :func:`separable_filter` applies as a weighted sum of shifted views when
@@ -160,6 +160,27 @@ def _filter_axis_conv(x3: torch.Tensor, kernel: torch.Tensor, padding: str) -> t
     return F.conv2d(x3[:, None], kernel.view(1, 1, k, 1), padding=(pad, 0))[:, 0]
 
 
+def _filter_axis_matrix(x3: torch.Tensor, kernel: torch.Tensor, padding: str) -> torch.Tensor:
+    """Correlate the middle axis of ``[P, n, Q]`` with ``kernel``: one matrix product with the dense ``[n_out, n]``
+    filter matrix (the padding folded into it: a replicated edge adds its taps to the edge column)."""
+    k, n = kernel.numel(), x3.shape[1]
+    r = 0 if padding == "valid" else (k - 1) // 2
+    n_out = n - k + 1 if padding == "valid" else n
+    rows = torch.arange(n_out, device=x3.device)[:, None].expand(n_out, k)
+    cols = rows + torch.arange(k, device=x3.device)[None, :] - r
+    taps = kernel[None, :].expand(n_out, k)
+    if padding == "replicate":
+        cols = cols.clamp(0, n - 1)
+    else:  # zeros (valid never leaves the axis)
+        inside = (cols >= 0) & (cols < n)
+        rows, cols, taps = rows[inside], cols[inside], taps[inside]
+    mat = torch.zeros(n_out, n, dtype=x3.dtype, device=x3.device)
+    mat.index_put_((rows.reshape(-1), cols.reshape(-1)), taps.reshape(-1), accumulate=True)
+    if x3.shape[2] == 1:  # the last axis: rows of x times the transposed matrix
+        return (x3[:, :, 0] @ mat.T)[:, :, None]
+    return torch.matmul(mat, x3)
+
+
 def separable_filter(
     x: torch.Tensor,
     kernels: Sequence[torch.Tensor | None],
@@ -180,9 +201,11 @@ def separable_filter(
             padding). ``"zeros"`` and ``"replicate"`` keep the shape and need odd kernels (centred).
         method: ``"shifted"``: a weighted sum of shifted views of the padded tensor (one memory pass per tap, no
             convolution set-up: fast for short kernels); ``"conv"``: a single-channel ``conv1d``/``conv2d`` of the
-            axis; ``"auto"``: ``"shifted"`` up to :data:`SHIFTED_SUM_MAX_TAPS` taps, else ``"conv"`` (the crossover
-            measured by ``benchmarks/bench_gaussian.py``, forward and backward). Both give the same result up to
-            floating-point rounding.
+            axis; ``"matrix"``: one product with the dense ``[n, n]`` filter matrix of the axis (``n^2`` multiply-adds
+            per line whatever the kernel's length: for kernels nearly as long as the axis, e.g. the CBCT scatter
+            kernel); ``"auto"``: ``"shifted"`` up to :data:`SHIFTED_SUM_MAX_TAPS` taps, else ``"conv"`` (the
+            crossover measured by ``benchmarks/bench_gaussian.py``, forward and backward). All give the same result
+            up to floating-point rounding.
 
     Returns:
         the filtered tensor, ``x``'s shape (``"valid"``: shrunk), dtype and device; ``x`` itself when every kernel
@@ -190,8 +213,8 @@ def separable_filter(
     """
     if padding not in _MODES:
         raise ValueError(f"padding must be one of {_MODES}, got {padding!r}")
-    if method not in ("auto", "shifted", "conv"):
-        raise ValueError(f"method must be 'auto', 'shifted' or 'conv', got {method!r}")
+    if method not in ("auto", "shifted", "conv", "matrix"):
+        raise ValueError(f"method must be 'auto', 'shifted', 'conv' or 'matrix', got {method!r}")
     if len(kernels) > x.ndim:
         raise ValueError(f"{len(kernels)} kernels for a {x.ndim}-d tensor")
     first = x.ndim - len(kernels)
@@ -209,7 +232,7 @@ def separable_filter(
             raise ValueError(f"kernel {i} ({k} taps) is longer than axis {dim} ({out.shape[dim]}) for 'valid'")
         kernel = kernel.to(dtype=out.dtype, device=out.device)
         use_conv = method == "conv" or (method == "auto" and k > SHIFTED_SUM_MAX_TAPS)
-        filt = _filter_axis_conv if use_conv else _filter_axis_shifted
+        filt = _filter_axis_matrix if method == "matrix" else _filter_axis_conv if use_conv else _filter_axis_shifted
         y3 = filt(_as_3d(out, dim), kernel, padding)
         out = y3.reshape(*out.shape[:dim], y3.shape[1], *out.shape[dim + 1 :])
     return out

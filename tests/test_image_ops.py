@@ -32,7 +32,7 @@ except ImportError:
     _alignment_local_mean = None
 
 torch.set_num_threads(1)
-METHODS = ("shifted", "conv")
+METHODS = ("shifted", "conv", "matrix")
 
 
 def _reference_local_mean(volume: torch.Tensor, mask: torch.Tensor, sigma_vox: list[float]) -> torch.Tensor:
@@ -181,8 +181,24 @@ def test_scatter_blur_matches_conv2d_reference():
         k = (k / k.sum()).view(1, 1, -1, 1) if axis == 0 else (k / k.sum()).view(1, 1, 1, -1)
         ref = F.conv2d(F.pad(ref, (0, 0, r, r) if axis == 0 else (r, r, 0, 0), mode="replicate"), k)
     kernels = [gaussian_kernel_1d(s, approx="sampled", normalize=True, size=2 * math.ceil(3 * s) + 1) for s in sig]
-    got = separable_filter(images, kernels, padding="replicate")
-    torch.testing.assert_close(got, ref[:, 0], atol=0.05, rtol=1e-5)
+    for method in METHODS:  # the physics uses "matrix"
+        got = separable_filter(images, kernels, padding="replicate", method=method)
+        torch.testing.assert_close(got, ref[:, 0], atol=0.05, rtol=1e-5)
+
+
+@pytest.mark.parametrize("padding", ["zeros", "replicate"])
+def test_matrix_method_with_a_kernel_longer_than_the_axis(padding):
+    """The detector's scatter kernel can outgrow a short detector axis: the matrix folds every tap that leaves the
+    axis into the edge (replicate) or drops it (zeros), as the padded shifted sum does."""
+    x = _rand(4, 6, 5)
+    kernels = [_rand(17, seed=4), _rand(11, seed=5)]
+    ref = separable_filter(x, kernels, padding, "shifted")
+    torch.testing.assert_close(separable_filter(x, kernels, padding, "matrix"), ref, atol=1e-5, rtol=1e-5)
+    edge = torch.zeros(1, 7)
+    edge[0, 0] = 1.0  # replicate: the first sample's value continues to the left, so taps left of it weigh on it
+    got = separable_filter(edge, [torch.ones(5) / 5], padding, "matrix")
+    want = [3 / 5, 2 / 5, 1 / 5] if padding == "replicate" else [1 / 5, 1 / 5, 1 / 5]
+    torch.testing.assert_close(got[0, :3], torch.tensor(want))
 
 
 @pytest.mark.parametrize("sigma", [[3.0, 3.0, 3.0], [5.0, 4.5, 6.0], [8.0, 8.0, 8.0], [16.0, 12.0, 9.0]])

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 from pathlib import Path
 
@@ -114,6 +115,50 @@ def test_rot90_view_sharing_is_exact():
     qa = cone_backproject(a, grid, geom, "cpu", use_symmetry=True)
     qb = cone_backproject(a, grid, geom, "cpu", use_symmetry=False)
     assert torch.allclose(qa, qb, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("kind", ["cone", "fan"])
+def test_empty_margins_change_no_line_integral(kind, monkeypatch):
+    """The projectors sweep only the occupied planes: an object off-centre in a grid with wide empty margins gives
+    the line integrals of the full sweep over every plane (the reference: the span forced to the whole grid)."""
+    from monai_rigidreg.simulation import projector
+
+    tight = Grid((14, 10, 12), (3.0, 3.0, 3.0), (-9.0, 15.0, -16.5))
+    obj, _ = make_phantom("random", tight, seed=4)
+    obj[0], obj[-1], obj[:, 0], obj[:, -1] = 0.02, 0.03, 0.04, 0.05  # the edge planes hold something
+    wide = Grid((30, 34, 12), (3.0, 3.0, 3.0), (-45.0, -51.0, -16.5))
+    big = torch.zeros(wide.size)
+    big[12:26, 22:32] = obj
+    if kind == "cone":
+        geom = ConeBeamGeometry(num_views=16, start_angle=3.0).fitted(110.0, 30.0, 3.0)
+        project = projector.cone_forward
+    else:
+        geom = FanBeamGeometry(num_views=16, start_angle=3.0).fitted(110.0, 3.0)
+        project = projector.fan_forward
+    assert projector._occupied_span(big) == (12, 26) and projector._occupied_span(big.transpose(0, 1)) == (22, 32)
+    got = project(big, wide, geom, "cpu")
+    monkeypatch.setattr(projector, "_occupied_span", lambda planes: (0, planes.shape[0]))
+    want = project(big, wide, geom, "cpu")
+    assert float(want.max()) > 0.5
+    torch.testing.assert_close(got, want, atol=2e-5, rtol=1e-5)
+
+
+def test_fan_backprojection_field_of_view_only():
+    """``fov_only``: the same values inside the circle every view sees, 0 outside (where they were incomplete)."""
+    from monai_rigidreg.simulation import fan_backproject
+
+    grid = Grid.centered((40, 40, 3), (2.0, 2.0, 2.0))
+    geom = FanBeamGeometry(num_views=24).fitted(30.0, 2.0)
+    sino = torch.rand(24, 3, int(geom.num_detectors), generator=torch.Generator().manual_seed(0))
+    full = fan_backproject(sino, grid, geom, "cpu")
+    fov = fan_backproject(sino, grid, geom, "cpu", fov_only=True)
+    half = float(geom.u_coords()[-1]) + float(geom.pixel_pitch) / 2
+    radius = geom.sod * math.sin(math.atan(half / geom.sdd))
+    xs = grid_axes(grid)[0]
+    inside = (xs[:, None] ** 2 + xs[None, :] ** 2 <= radius**2)[:, :, None].expand(40, 40, 3)
+    assert 0.3 < float(inside.float().mean()) < 0.9
+    torch.testing.assert_close(fov[inside], full[inside])
+    assert bool((fov[~inside] == 0).all()) and float(full[~inside].abs().max()) > 0
 
 
 @pytest.mark.parametrize("kind", ["cone", "fan"])
@@ -516,3 +561,26 @@ def test_volume_dtype_is_a_storage_choice(tmp_path):
     assert make_config("fast", volume_dtype="float32").identity() == make_config("fast").identity()
     with pytest.raises(InputError, match="volume_dtype"):
         make_config("fast", volume_dtype="float16")
+
+
+@pytest.mark.parametrize("nu", [23, 32, 140])
+def test_ramp_filter_is_the_linear_convolution_with_the_spatial_kernel(nu):
+    """Whatever the padded FFT length (5-smooth, >= 2 nu), a row is convolved with the spatial Ram-Lak kernel
+    ``h[0] = 1 / (4 tau^2)``, ``h[odd n] = -1 / (pi n tau)^2`` (times ``tau``) without wrap-around."""
+    from monai_rigidreg.simulation.reconstruction import padded_length, ramp_filter
+
+    p = padded_length(nu)
+    assert p >= 2 * nu and p % 2 == 0 and p <= 2 * nu + 16
+    m = p
+    for f in (2, 3, 5):
+        while m % f == 0:
+            m //= f
+    assert m == 1
+    tau = 1.7
+    rows = torch.randn(3, nu, generator=torch.Generator().manual_seed(nu), dtype=torch.float64)
+    n = torch.arange(-(nu - 1), nu, dtype=torch.float64)
+    h = torch.where(n.remainder(2) == 1, -1.0 / (math.pi * n * tau) ** 2, torch.zeros_like(n))
+    h[nu - 1] = 1.0 / (4 * tau**2)
+    want = torch.stack([torch.stack([(r * h[i - torch.arange(nu) + nu - 1]).sum() * tau for i in range(nu)])
+                        for r in rows])
+    torch.testing.assert_close(ramp_filter(rows, tau).double(), want, atol=1e-5, rtol=1e-4)

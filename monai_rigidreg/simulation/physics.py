@@ -113,13 +113,14 @@ def apply_cbct_physics(
         if physics.scatter_to_primary > 0:
             du, dv = geometry.pixel_pitch  # type: ignore[misc]
             # separable sampled Gaussian (radius ceil(3 sigma) pixels, normalized), edges replicated: the detector
-            # signal continues smoothly
+            # signal continues smoothly. As dense matrix products: the kernel (~120 taps) is nearly as long as the
+            # detector axes, 0.06 s instead of 0.6 s for 360 views of 142 x 166 on 2 cores
             kernels = [
                 gaussian_kernel_1d(s, approx="sampled", normalize=True, size=2 * math.ceil(3 * s) + 1,
                                    dtype=primary.dtype, device=primary.device)
                 for s in (physics.scatter_sigma_mm / dv, physics.scatter_sigma_mm / du)
             ]
-            blurred = separable_filter(primary, kernels, padding="replicate")
+            blurred = separable_filter(primary, kernels, padding="replicate", method="matrix")
             nv = p.shape[1]
             cv, cu = (
                 slice(nv // 2 - nv // 16, nv // 2 + nv // 16 + 1),

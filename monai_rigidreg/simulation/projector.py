@@ -73,6 +73,14 @@ def _rot90(vol: torch.Tensor) -> torch.Tensor:
     return torch.flip(vol, (0,)).transpose(0, 1)
 
 
+def _occupied_span(planes: torch.Tensor) -> tuple[int, int]:
+    """``[lo, hi)``: the first and one past the last plane of ``planes`` (``[P, ...]``) with a non-zero value."""
+    occupied = torch.nonzero(planes.reshape(planes.shape[0], -1).ne(0).any(1)).flatten()
+    if occupied.numel() == 0:
+        return 0, 0
+    return int(occupied[0]), int(occupied[-1]) + 1
+
+
 def cone_forward(
     volume: torch.Tensor,
     grid: Grid,
@@ -120,6 +128,9 @@ def cone_forward(
     planes_x = torch.stack(vols, 1).contiguous(memory_format=torch.channels_last)
     planes_y = torch.stack([v.permute(1, 0, 2) for v in vols], 1).contiguous(memory_format=torch.channels_last)
     del vols
+    # planes that hold nothing add nothing: sweep only the occupied slab along each axis (the same sums; the object
+    # grid of a simulation leaves margins for the motion, ~20 % of the planes of the 2 mm phantom CBCT)
+    span_x, span_y = _occupied_span(planes_x), _occupied_span(planes_y)
     u = geometry.u_coords(dev).to(torch.float32)[None, :]  # [1, nu]
     v = geometry.v_coords(dev).to(torch.float32)[:, None]  # [nv, 1]
     nu, nv = geometry.detector_shape  # type: ignore[misc]
@@ -135,16 +146,16 @@ def cone_forward(
         dx, dy = -sdd * c - u * s, -sdd * s + u * c  # ray direction (source -> pixel), [1, nu]
         if abs(c) >= abs(s):  # sweep planes of constant x
             pos, src_a, src_b, d_a, d_b = xs, src[0], src[1], dx, dy
-            planes, step, o_b, s_b, n_b = planes_x, sx, oy, sy, ny
+            planes, step, o_b, s_b, n_b, (lo, hi) = planes_x, sx, oy, sy, ny, span_x
         else:  # sweep planes of constant y
             pos, src_a, src_b, d_a, d_b = ys, src[1], src[0], dy, dx
-            planes, step, o_b, s_b, n_b = planes_y, sy, ox, sx, nx
+            planes, step, o_b, s_b, n_b, (lo, hi) = planes_y, sy, ox, sx, nx, span_y
         length = step * torch.sqrt(dx**2 + dy**2 + v**2) / d_a.abs()  # path length per plane, [nv, nu]
         acc = torch.zeros(len(views), nv, nu, dtype=torch.float32, device=dev)
         scale_b, scale_z = 2.0 / (s_b * (n_b - 1)), 2.0 / (sz * (nz - 1))
         vz = v[None] * scale_z  # [1, nv, 1]
-        for p0 in range(0, pos.numel(), chunk):
-            n = min(chunk, pos.numel() - p0)
+        for p0 in range(lo, hi, chunk):
+            n = min(chunk, hi - p0)
             t = (pos[p0 : p0 + n, None] - src_a) / d_a  # [P, nu] ray parameter at each plane
             g[:n, :, :, 1] = ((src_b + t * d_b - o_b) * scale_b - 1.0)[:, None, :]  # in-plane coordinate (H)
             g[:n, :, :, 0] = t[:, None, :] * vz - (oz * scale_z + 1.0)  # z (W)
@@ -155,7 +166,7 @@ def cone_forward(
 
 
 def _fan_taps(
-    pos: torch.Tensor, coord: torch.Tensor, o_b: float, s_b: float, n_b: int
+    coord: torch.Tensor, o_b: float, s_b: float, n_b: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Linear-interpolation taps ``(j0, j1, w0, w1)`` of in-plane coordinates, weights 0 outside the grid."""
     j = (coord - o_b) / s_b
@@ -168,21 +179,33 @@ def _fan_taps(
     return j0.clamp(0, n_b - 1), j1.clamp(0, n_b - 1), w0, w1
 
 
+def _view_batches(along_x: torch.Tensor, batch: int) -> list[tuple[bool, torch.Tensor]]:
+    """Views grouped by sweep axis (``True``: planes of constant x), in batches of at most ``batch``."""
+    out = []
+    for sweep_x in (True, False):
+        views = torch.nonzero(along_x == sweep_x).flatten()
+        out += [(sweep_x, views[i : i + batch]) for i in range(0, views.numel(), batch)]
+    return out
+
+
 def fan_forward(
     volume: torch.Tensor,
     grid: Grid,
     geometry: FanBeamGeometry,
     device: str | torch.device | None = "auto",
-    view_batch: int = 8,
+    view_batch: int = 16,
 ) -> torch.Tensor:
     """Fan-beam line integrals of every axial slice of ``volume`` (one detector row per slice).
+
+    The taps of a batch of views are computed together (one set of tensor operations per batch, not per view:
+    under passive OpenMP waiting, which the package sets, every multi-threaded operation pays a thread wake-up).
 
     Args:
         volume: ``[nx, ny, nz]`` attenuation (1/mm) on ``grid``.
         grid: axis-aligned grid of ``volume``.
         geometry: a complete :class:`FanBeamGeometry`.
         device: ``"cpu"``, ``"cuda"`` or ``"auto"``.
-        view_batch: views handled by one ``embedding_bag`` call.
+        view_batch: views handled by one ``embedding_bag`` call (views sweeping the same axis).
 
     Returns:
         ``[num_views, nz, nu]`` float32 line integrals (unitless).
@@ -192,48 +215,39 @@ def fan_forward(
     xs, ys, _ = grid_axes(grid, dev)
     nx, ny, nz = grid.size
     (ox, oy, _), (sx, sy, _) = grid.origin, grid.spacing
-    table = volume.to(device=dev, dtype=torch.float32).reshape(nx * ny, nz)
-    u = geometry.u_coords(dev)[:, None]  # [nu, 1]
-    nu = u.shape[0]
-    npl = max(nx, ny)
-    betas = geometry.angles().tolist()
-    out = torch.empty(len(betas), nz, nu, dtype=torch.float32, device=dev)
-    for b0 in range(0, len(betas), view_batch):
-        idx_l, w_l = [], []
-        for beta in betas[b0 : b0 + view_batch]:
-            c, s = math.cos(beta), math.sin(beta)
-            sx_, sy_ = geometry.sod * c, geometry.sod * s
-            dx, dy = -geometry.sdd * c - u * s, -geometry.sdd * s + u * c  # [nu, 1]
-            if abs(c) >= abs(s):
-                t = (xs[None, :] - sx_) / dx  # [nu, nx]
-                j0, j1, w0, w1 = _fan_taps(xs, sy_ + t * dy, oy, sy, ny)
-                i = torch.arange(nx, device=dev)[None, :].expand_as(j0)
-                idx = torch.cat([i * ny + j0, i * ny + j1], 1)
-                length = sx * torch.sqrt(dx**2 + dy**2) / dx.abs()
-            else:
-                t = (ys[None, :] - sy_) / dy  # [nu, ny]
-                i0, i1, w0, w1 = _fan_taps(ys, sx_ + t * dx, ox, sx, nx)
-                j = torch.arange(ny, device=dev)[None, :].expand_as(i0)
-                idx = torch.cat([i0 * ny + j, i1 * ny + j], 1)
-                length = sy * torch.sqrt(dx**2 + dy**2) / dy.abs()
-            w = torch.cat([w0, w1], 1) * length
-            pad = 2 * npl - idx.shape[1]
-            if pad:
-                idx = F.pad(idx, (0, pad))
-                w = F.pad(w, (0, pad))
-            idx_l.append(idx)
-            w_l.append(w)
-        res = F.embedding_bag(
-            torch.cat(idx_l), table, per_sample_weights=torch.cat(w_l).to(torch.float32), mode="sum"
-        )  # [B * nu, nz]
-        out[b0 : b0 + len(idx_l)] = res.view(len(idx_l), nu, nz).transpose(1, 2)
+    vol = volume.to(device=dev, dtype=torch.float32)
+    # sweep only the occupied planes along each axis (empty planes add nothing)
+    spans = {True: _occupied_span(vol), False: _occupied_span(vol.transpose(0, 1))}
+    table = vol.reshape(nx * ny, nz)
+    u = geometry.u_coords(dev).to(torch.float64)[None, :, None]  # [1, nu, 1]
+    nu = u.shape[1]
+    betas = geometry.angles(dev).to(torch.float64)
+    cos_b, sin_b = torch.cos(betas), torch.sin(betas)
+    out = torch.zeros(betas.numel(), nz, nu, dtype=torch.float32, device=dev)
+    for sweep_x, views in _view_batches(cos_b.abs() >= sin_b.abs(), view_batch):
+        lo, hi = spans[sweep_x]
+        if hi <= lo:
+            continue
+        c, s = cos_b[views, None, None], sin_b[views, None, None]  # [B, 1, 1]
+        src_x, src_y = geometry.sod * c, geometry.sod * s
+        dx, dy = -geometry.sdd * c - u * s, -geometry.sdd * s + u * c  # ray directions, [B, nu, 1]
+        planes = torch.arange(lo, hi, device=dev)[None, None, :]
+        if sweep_x:  # planes of constant x: the ray's y at each, linear taps along y
+            t = (xs[lo:hi][None, None, :] - src_x) / dx  # [B, nu, P]
+            j0, j1, w0, w1 = _fan_taps(src_y + t * dy, oy, sy, ny)
+            idx0, idx1 = planes * ny + j0, planes * ny + j1
+            length = sx * torch.sqrt(dx**2 + dy**2) / dx.abs()
+        else:
+            t = (ys[lo:hi][None, None, :] - src_y) / dy
+            i0, i1, w0, w1 = _fan_taps(src_x + t * dx, ox, sx, nx)
+            idx0, idx1 = i0 * ny + planes, i1 * ny + planes
+            length = sy * torch.sqrt(dx**2 + dy**2) / dy.abs()
+        n = views.numel()
+        idx = torch.cat([idx0, idx1], 2).reshape(n * nu, -1)
+        w = (torch.cat([w0, w1], 2) * length).to(torch.float32).reshape(n * nu, -1)
+        res = F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")  # [B * nu, nz]
+        out[views] = res.view(n, nu, nz).transpose(1, 2)
     return out
-
-
-def _source_frame(x: torch.Tensor, y: torch.Tensor, beta: float, sod: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Distance from the source along the central ray ``U`` and the transaxial coordinate ``t`` (mm)."""
-    c, s = math.cos(beta), math.sin(beta)
-    return sod - (x * c + y * s), -x * s + y * c
 
 
 def cone_backproject(
@@ -323,7 +337,8 @@ def fan_backproject(
     grid: Grid,
     geometry: FanBeamGeometry,
     device: str | torch.device | None = "auto",
-    view_batch: int = 8,
+    view_batch: int = 32,
+    fov_only: bool = False,
 ) -> torch.Tensor:
     """Voxel-driven fan-beam back projection of every slice, with the distance weight ``(sod / U)^2``.
 
@@ -332,7 +347,11 @@ def fan_backproject(
         grid: output grid (axis-aligned).
         geometry: a complete :class:`FanBeamGeometry`.
         device: ``"cpu"``, ``"cuda"`` or ``"auto"``.
-        view_batch: views accumulated by one ``embedding_bag`` call.
+        view_batch: views accumulated by one ``embedding_bag`` call (32: 12 % faster than 8 on 2 CPU cores for
+            the 256^3 Sim-CT; the accumulation into the output is the cost that batching saves).
+        fov_only: back-project only the voxel columns inside the field of view every view sees (the circle of
+            radius ``sod sin(atan(half detector width / sdd))`` about the axis) and leave the others at 0: the
+            reconstruction there is incomplete anyway, and skipping them saves ~20 % of a square grid.
 
     Returns:
         ``[nx, ny, nz]`` float32: ``sum_views (sod / U)^2 q(u(x))`` (no angular scaling).
@@ -344,23 +363,34 @@ def fan_backproject(
         raise ValueError(f"sinogram {tuple(sinogram.shape)} does not match {(geometry.num_views, nz, nu)}")
     xs, ys, _ = grid_axes(grid, dev)
     X, Y = (a.reshape(-1) for a in torch.meshgrid(xs, ys, indexing="ij"))
-    u0 = float(geometry.u_coords()[0])
+    u_all = geometry.u_coords()
+    u0 = float(u_all[0])
     du = float(geometry.pixel_pitch)  # type: ignore[arg-type]
+    columns = None
+    if fov_only:
+        half = float(min(-u_all[0], u_all[-1])) + du / 2
+        radius = geometry.sod * math.sin(math.atan(max(half, 0.0) / geometry.sdd))
+        columns = torch.nonzero(X * X + Y * Y <= radius * radius).flatten()
+        X, Y = X[columns], Y[columns]
     q = sinogram.to(device=dev, dtype=torch.float32).transpose(1, 2)  # [V, nu, nz]
-    out = torch.zeros(nx * ny, nz, dtype=torch.float32, device=dev)
-    betas = geometry.angles().tolist()
-    for b0 in range(0, len(betas), view_batch):
-        idx_l, w_l = [], []
-        for k, beta in enumerate(betas[b0 : b0 + view_batch]):
-            big_u, t = _source_frame(X, Y, beta, geometry.sod)
-            iu = (t * (geometry.sdd / big_u) - u0) / du
-            i0, i1, w0, w1 = _fan_taps(iu, iu, 0.0, 1.0, nu)
-            wd = (geometry.sod / big_u) ** 2
-            idx_l += [k * nu + i0, k * nu + i1]
-            w_l += [w0 * wd, w1 * wd]
-        nb = len(idx_l) // 2
-        table = q[b0 : b0 + nb].reshape(nb * nu, nz)
-        out += F.embedding_bag(
-            torch.stack(idx_l, 1), table, per_sample_weights=torch.stack(w_l, 1).to(torch.float32), mode="sum"
-        )
-    return out.view(nx, ny, nz)
+    out = torch.zeros(X.numel(), nz, dtype=torch.float32, device=dev)
+    betas = geometry.angles(dev).to(torch.float64)
+    X, Y = X[None, :], Y[None, :]
+    for b0 in range(0, betas.numel(), view_batch):
+        beta = betas[b0 : b0 + view_batch, None]  # [B, 1]
+        c, s = torch.cos(beta), torch.sin(beta)
+        big_u = geometry.sod - (X * c + Y * s)  # distance from the source along the central ray, [B, cols]
+        iu = ((-X * s + Y * c) * (geometry.sdd / big_u) - u0) / du  # detector column (pixels)
+        i0, i1, w0, w1 = _fan_taps(iu, 0.0, 1.0, nu)
+        wd = (geometry.sod / big_u) ** 2
+        n = beta.shape[0]
+        row = torch.arange(n, device=dev)[:, None] * nu  # view k's rows of the table
+        idx = torch.cat([row + i0, row + i1], 0).T.contiguous()  # [cols, 2B]
+        w = torch.cat([w0 * wd, w1 * wd], 0).T.to(torch.float32).contiguous()
+        table = q[b0 : b0 + n].reshape(n * nu, nz)
+        out += F.embedding_bag(idx, table, per_sample_weights=w, mode="sum")
+    if columns is None:
+        return out.view(nx, ny, nz)
+    full = torch.zeros(nx * ny, nz, dtype=torch.float32, device=dev)
+    full[columns] = out
+    return full.view(nx, ny, nz)
