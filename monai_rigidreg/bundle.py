@@ -23,7 +23,7 @@ __all__ = ["DEFAULT_BUNDLE_NAME", "default_bundle_path", "load_bundle_network", 
 logger = logging.getLogger(__name__)
 
 DEFAULT_BUNDLE_NAME = "cbct_ct_rigid"
-SETTING_KEYS = ("network_size", "network_spacing", "cascade_steps", "global_init", "native_level",
+SETTING_KEYS = ("network_size", "network_spacing", "cascade_steps", "global_init", "search_starts", "native_level",
                 "native_bias_degree", "native_bias_degree_roi")
 
 

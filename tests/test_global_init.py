@@ -133,6 +133,38 @@ def test_default_registration_recovers_60mm_40deg(ct, registrar):
     assert "global_search" in res.timings
 
 
+def test_the_network_starts_from_several_candidates_when_the_best_score_is_a_decoy(ct, registrar, monkeypatch):
+    """``search_starts``: the search's top candidate can be a wrong basin (a near-symmetric head fools the coarse
+    score); with one start the registration follows it, with two the network also starts from the second candidate
+    and the better image match (the true basin) wins; details say which rank and list every start's match."""
+    import monai_rigidreg.registration as reg_mod
+
+    truth = [38.0, -36.0, 28.0, 0.0, 0.0, 40.0]
+    cbct = _cbct(ct, params_to_matrix(truth, ISO), seed=2)
+    pts = _box_points(ISO - 40, ISO + 40)
+    real = reg_mod.global_search
+
+    def decoy_first(*args, **kwargs):
+        cands = real(*args, **kwargs)
+        right = next(c for c in cands if c.rotation_deg == (0.0, 0.0, 25.0))
+        wrong = next(c for c in cands if c.rotation_deg == (25.0, 25.0, -25.0))
+        return [wrong, right] + [c for c in cands if c is not right and c is not wrong]
+
+    monkeypatch.setattr(reg_mod, "global_search", decoy_first)
+    assert registrar.search_starts == 4  # the bundle's
+    one = RigidRegistrar.from_bundle(device="cpu", search_starts=1)
+    res1 = one(ct, cbct, resample_moving=False)
+    assert _tre(res1, truth, pts) > 10.0 and len(res1.details["global_search"]["search_start_ncc"]) == 1
+    two = RigidRegistrar.from_bundle(device="cpu", search_starts=2)
+    res2 = two(ct, cbct, resample_moving=False)
+    search = res2.details["global_search"]
+    assert res2.details["start"] == "search" and search["start_rank"] == 1
+    assert search["search_start_ncc"][1] > max(search["search_start_ncc"][0], search["identity_start_ncc"])
+    assert _tre(res2, truth, pts) < 1.0 and not res2.flagged
+    with pytest.raises(InputError, match="search_starts"):
+        RigidRegistrar.from_bundle(device="cpu", search_starts=0)
+
+
 def test_roi_decides_which_of_two_differently_moving_halves_is_matched(ct, registrar):
     # the half x < ISO_x moved by one motion, the half x >= ISO_x by another (6 mm and 3 degrees apart)
     left, right = [4.0, -3.0, 2.0, 0.0, 0.0, 2.0], [-2.0, 3.0, -3.0, 2.0, 0.0, -1.0]
@@ -148,7 +180,7 @@ def test_roi_decides_which_of_two_differently_moving_halves_is_matched(ct, regis
     # each is matched to its own half, not to the other one
     assert _tre(res_l, right, pts_l) > 3.0
     assert _tre(res_r, left, pts_r) > 3.0
-    assert res_l.details["match_region"] == {"roi": list(box_left), "match": "soft"}
+    assert res_l.details["match_region"] == {"roi": list(box_left), "match": "soft", "applied_to": "last level"}
 
 
 def test_image_match_scores_inside_the_match_region(ct):
