@@ -4,6 +4,8 @@ Times one separable filter pass with a kernel of ``K`` taps on every filtered ax
 
 * ``shifted``: ``method="shifted"``, a weighted sum of ``K`` shifted views of the padded tensor;
 * ``conv``: ``method="conv"``, one single-channel ``conv1d``/``conv2d`` per axis;
+* ``matrix``: ``method="matrix"``, one product with the dense ``[n, n]`` filter matrix per axis (by request only:
+  the CBCT scatter blur, whose kernel is nearly as long as the detector axes);
 * ``MONAI``: ``monai.networks.layers.separable_filtering`` (grouped ``conv3d``/``conv2d``), for reference.
 
 Shapes are those of the callers: ``[1, 136, 136, 136]`` (the anti-aliased CT crop, zero padding, three axes) and
@@ -63,8 +65,8 @@ def _ratio(times: dict[str, list[float]]) -> float:
 def _table(title: str, x: torch.Tensor, axes: int, padding: str, repeats: int) -> int | None:
     """Print one table; return the first length where ``conv`` beats ``shifted`` (None: never)."""
     print(f"\n{title}\n")
-    print("| taps K | shifted ms | conv ms | MONAI separable_filtering ms | conv / shifted | faster |")
-    print("|---:|---:|---:|---:|---:|---|")
+    print("| taps K | shifted ms | conv ms | matrix ms | MONAI separable_filtering ms | conv / shifted | faster |")
+    print("|---:|---:|---:|---:|---:|---:|---|")
     monai_in = x.reshape(-1, 1, *x.shape[x.ndim - axes :])  # MONAI wants [B, C, spatial...]
     crossover = None
     for k in LENGTHS:
@@ -73,13 +75,15 @@ def _table(title: str, x: torch.Tensor, axes: int, padding: str, repeats: int) -
         t = _times_ms({
             "shifted": lambda ks=ks: separable_filter(x, ks, padding, "shifted"),
             "conv": lambda ks=ks: separable_filter(x, ks, padding, "conv"),
+            "matrix": lambda ks=ks: separable_filter(x, ks, padding, "matrix"),
             "monai": lambda ks=ks: separable_filtering(monai_in, ks, mode=padding),
         }, repeats)
         ratio = _ratio(t)
         faster = "conv" if ratio < 1 else "shifted"
         if faster == "conv" and crossover is None:
             crossover = k
-        print(f"| {k} | {min(t['shifted']):.1f} | {min(t['conv']):.1f} | {min(t['monai']):.1f} | {ratio:.2f} "
+        print(f"| {k} | {min(t['shifted']):.1f} | {min(t['conv']):.1f} | {min(t['matrix']):.1f} | "
+              f"{min(t['monai']):.1f} | {ratio:.2f} "
               f"| {faster} |", flush=True)
     return crossover
 

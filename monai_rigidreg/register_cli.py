@@ -52,7 +52,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "measure it; with --refine the optimizer still runs)")
     p.add_argument("--no-global-init", action="store_true",
                    help="skip the global search for large offsets (on by default: translations over +-72 mm for "
-                   "27 rotation candidates; the network also starts from its best candidate where the two disagree)")
+                   "27 rotation candidates; the network also starts from its best candidates where they disagree)")
     p.add_argument("--roi", default=None, metavar="X0,Y0,Z0,X1,Y1,Z1|MASK",
                    help="match only this region of the CT (clip box): a box in CT LPS mm, or a mask image on the CT's "
                    "physical space (non-zero inside)")

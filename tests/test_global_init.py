@@ -181,6 +181,11 @@ def test_roi_decides_which_of_two_differently_moving_halves_is_matched(ct, regis
     assert _tre(res_l, right, pts_l) > 3.0
     assert _tre(res_r, left, pts_r) > 3.0
     assert res_l.details["match_region"] == {"roi": list(box_left), "match": "soft", "applied_to": "last level"}
+    # with the last level off the region weights the network instead and still picks the half
+    no_last = RigidRegistrar.from_bundle(device="cpu", native_level=False)
+    res_n = no_last(ct, cbct, resample_moving=False, roi=box_left)
+    assert res_n.details["match_region"]["applied_to"] == "network"
+    assert _tre(res_n, left, pts_l) < 1.5 and _tre(res_n, right, pts_l) > 3.0
 
 
 def test_image_match_scores_inside_the_match_region(ct):

@@ -114,7 +114,7 @@ def apply_cbct_physics(
             du, dv = geometry.pixel_pitch  # type: ignore[misc]
             # separable sampled Gaussian (radius ceil(3 sigma) pixels, normalized), edges replicated: the detector
             # signal continues smoothly. As dense matrix products: the kernel (~120 taps) is nearly as long as the
-            # detector axes, 0.06 s instead of 0.6 s for 360 views of 142 x 166 on 2 cores
+            # detector axes (benchmarks/bench_gaussian.py, the [360, 128, 128] replicate table's matrix column)
             kernels = [
                 gaussian_kernel_1d(s, approx="sampled", normalize=True, size=2 * math.ceil(3 * s) + 1,
                                    dtype=primary.dtype, device=primary.device)
