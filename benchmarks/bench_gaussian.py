@@ -16,7 +16,8 @@ taps by default): it decides which implementation ``method="auto"`` uses when au
 
 Each time is the fastest of ``--repeats`` runs; the implementations take turns within each repeat, and
 ``conv / shifted`` is the median over the repeats of the ratio of the two times of one repeat (> 1: the shifted sum
-is faster), which decides the ``faster`` column. The load average is printed: on an oversubscribed machine (more
+is faster), which decides the ``faster`` column (shifted versus conv only: the choice ``method="auto"`` makes; the
+dense matrix is used where a caller asks for it). The load average is printed: on an oversubscribed machine (more
 runnable processes than cores) the shifted sum, dozens of short multi-threaded operations that each wait for their
 slowest thread, slows down several times more than one long convolution, and the tables then mislead.
 

@@ -14,8 +14,9 @@ before the network, :func:`global_search` compares the CBCT with the CT at **eve
 
 Frames: the result is a fixed (CT) -> moving (CBCT) 4x4 matrix in LPS mm, ``T(x) = R (x - d - c) + c`` with ``c``
 the CBCT centre, ``R`` the candidate rotation and ``d`` the CT shift the correlation found (see
-``docs/conventions.md``). :class:`~monai_rigidreg.registration.RigidRegistrar` uses the best candidate as a second
-start of the network (the first is the identity) and keeps the estimate whose CBCT field of view matches the CT best.
+``docs/conventions.md``). :class:`~monai_rigidreg.registration.RigidRegistrar` uses the best candidates (its
+``search_starts``) as further starts of the network (the first is the identity) and keeps the estimate whose CBCT field
+of view matches the CT best.
 
 Cost: ``RegistrationResult.timings["global_search"]`` (27 rotation candidates at 8 mm over +-72 mm).
 """
@@ -278,4 +279,4 @@ def fov_similarity(fixed: sitk.Image, moving: sitk.Image, fov: sitk.Image, matri
 
 SEARCH_AGREE_MM = 10.0
 """The network's estimate from the identity and the global search's best candidate agree when the mean distance
-between the network-grid points they map is below this: the second start is then skipped."""
+between the network-grid points they map is below this: the further starts are then skipped."""

@@ -149,7 +149,8 @@ class RigidRegistrar:
         inferer: optional MONAI ``Inferer`` (``inferer(inputs [B, 2, x, y, z], network) -> [B, 6]``) through which
             every network application runs (the bundle's ``inferer``: ``SimpleInferer``); ``None`` calls the network.
         global_init: run the global search for large offsets by default (:mod:`monai_rigidreg.global_init`: the
-            network also starts from its best candidate when the two disagree); a call's ``global_init`` overrides.
+            network also starts from its best candidates when they disagree with the estimate from the identity,
+            ``search_starts``); a call's ``global_init`` overrides.
         search_settings: keyword arguments of :func:`~monai_rigidreg.global_init.global_search` (``spacing_mm``,
             ``max_translation_mm``, ``rotations_deg``, ...).
         search_starts: when the estimate from the identity and the search's best candidate disagree, the network
@@ -333,7 +334,8 @@ class RigidRegistrar:
         on the CBCT; with a match region (``--roi``, ``--match bone``: ``region``, CT frame) inside it only, where
         the user asked the images to match (over the whole field of view where the region leaves fewer than 10
         voxels for an estimate). The one rule that chooses between starts and between an estimate and
-        its swapped-input twin."""
+        its swapped-input twin (the starts are scored over the whole field of view when the region only weights the
+        last level, see ``region_last`` in :meth:`_register`)."""
         ref_grid = self.grid_spec.pooled(2).centered(Grid.from_sitk(moving_img).center())
         scores = fov_similarity(fixed_img, moving_img, fov_img, matrices, ref_grid, self.hu_range, region=region)
         if region is not None and not np.all(np.isfinite(scores)):
@@ -475,9 +477,9 @@ class RigidRegistrar:
         # network's starts, the search and the choice between them) and the region weights the last level (and the
         # confidence's edge test): a region is where the images should match, but a small one on deformed or flat
         # anatomy is no place to search for the pose. Measured on the clinical-geometry deformed pairs (README,
-        # 0.4.4): the region-weighted network and a region-scored choice between starts reached estimates 17-50 mm
-        # off on a head pair whose whole-view pose is 5.7 mm off; the landmark error over the 20 deformed pairs
-        # 2.03 / 4.41 mm (seeds 1500 / 2500) with the region in the starts, 2.04 / 3.49 without.
+        # "Clinical geometry", 0.4.4): on a head pair the region-weighted network ended 17-52 mm off from every start
+        # while the whole view's estimate from the identity is 5.7 mm off (bench_starts_0.4.4_seed2500_head_deformed_
+        # 001); the deformed groups' landmark error 2.03 / 12.56 mm (seeds 1500 / 2500, 0.4.3) -> 2.04 / 3.48.
         region_last = weight_img is not None and native
         pose_weights = [w for w in (body,) if w is not None] if region_last else weights
         run = self._run_from(fixed_img, moving_img, np.eye(4), cascade_steps, pose_weights, timings, body)
@@ -490,12 +492,12 @@ class RigidRegistrar:
         if (roi is not None or match != "soft") and not region_last and not self.accepts_weight:
             details.setdefault("warnings", []).append(
                 "this network takes no match-region weight and the last level is off: the region of interest / bone "
-                "match is not applied")
+                "match only scopes the choice between starts and the confidence check")
         if roi is not None or match != "soft":
             details["match_region"] = {"roi": "mask" if isinstance(roi, sitk.Image) else list(roi) if roi else None,
                                        "match": match,
                                        "applied_to": "last level" if region_last else "network" if self.accepts_weight
-                                       else "none"}
+                                       else "choice of start"}
         if warnings:
             details.setdefault("warnings", []).extend(warnings)
         if global_init:
@@ -518,7 +520,7 @@ class RigidRegistrar:
                                            None if region_last else weight_img)
                 search.update(identity_start_ncc=round(scores[0], 4),
                               search_start_ncc=[round(v, 4) for v in scores[1:]])
-                k = int(np.argmax(scores))
+                k = int(np.argmax(np.nan_to_num(np.asarray(scores, dtype=np.float64), nan=-np.inf)))
                 if scores[k] > scores[0]:
                     run = alts[k - 1]
                     details["start"] = "search"
@@ -582,6 +584,10 @@ class RigidRegistrar:
                 # (the rule that chooses between starts); a better swapped estimate replaces this one, once (not
                 # after --refine, which the user asked to start from the network's estimate, and not for the
                 # learned network alone, fine_stage=False, which must stay measurable as it is)
+                # scored inside the match region even when the region only weighted the last level: the estimate
+                # judged here is the region's (after that level). Over the whole view instead, the twin (a whole-view
+                # network estimate) tends to win on deformed anatomy and its disagreement counts: seed-2500 deformed
+                # pairs, false alarms 2 -> 3 of 7 (bench_clinical_geometry_0.4.4_seed2500_deformed_swap_whole_view_*)
                 s_est, s_swap = self._image_match(fixed_img, moving_img, fov_img,
                                                   [params_to_matrix(params, grid_center), swapped], weight_img)
                 check = {"estimate_ncc": round(s_est, 4), "swapped_ncc": round(s_swap, 4),
@@ -712,9 +718,10 @@ def register(
             that). Also with ``model=`` a registrar built once. ``None`` (default): as the network is configured
             (the shipped bundle: on). ``details["fine_stage"]`` records what ran.
         global_init: the global search for large offsets (translations over +-72 mm for 27 rotation
-            candidates, :mod:`monai_rigidreg.global_init`): the network also starts from the search's best candidate
-            when it disagrees with the estimate from the identity, and the estimate whose CBCT field of view matches
-            the CT better is kept (``details["start"]`` says which: ``"identity"`` or ``"search"``). ``None``
+            candidates, :mod:`monai_rigidreg.global_init`): the network also starts from the search's best
+            candidates (the registrar's ``search_starts``) when the best one disagrees with the estimate from the
+            identity, and the estimate whose CBCT field of view matches the CT best is kept (``details["start"]``
+            says which: ``"identity"`` or ``"search"``). ``None``
             (default): on, except with ``fine_stage=False`` (the learned network alone); ``False``: off. The
             confidence check's swapped-input estimate is a third candidate: when it disagrees by more than
             :data:`~monai_rigidreg.confidence.SWAP_AGREE_MM` and matches better, it replaces the estimate (after its

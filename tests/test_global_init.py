@@ -165,14 +165,54 @@ def test_the_network_starts_from_several_candidates_when_the_best_score_is_a_dec
         RigidRegistrar.from_bundle(device="cpu", search_starts=0)
 
 
-def test_roi_decides_which_of_two_differently_moving_halves_is_matched(ct, registrar):
+def test_roi_decides_which_of_two_differently_moving_halves_is_matched(ct, registrar, monkeypatch):
     # the half x < ISO_x moved by one motion, the half x >= ISO_x by another (6 mm and 3 degrees apart)
     left, right = [4.0, -3.0, 2.0, 0.0, 0.0, 2.0], [-2.0, 3.0, -3.0, 2.0, 0.0, -1.0]
     cbct = _two_halves(ct, left, right, seed=3)
     # the ROI boxes stay 10 mm clear of the cut (the halves' CT regions differ by the motions, a few mm)
     box_left = (ISO[0] - 54, ISO[1] - 40, ISO[2] - 40, ISO[0] - 10, ISO[1] + 40, ISO[2] + 40)
     box_right = (ISO[0] + 10, ISO[1] - 40, ISO[2] - 40, ISO[0] + 54, ISO[1] + 40, ISO[2] + 40)
+    # with the last level on, the region stays out of the pose search: the network runs and the image matches that
+    # choose between starts (and the swapped twin) see the whole view; the last level gets the region
+    import monai_rigidreg.registration as reg_mod
+
+    seen: dict[str, list] = {"region": [], "run_weights": [], "match_regions": [], "native_region": []}
+    real_weight, real_run, real_match, real_native = (reg_mod.match_weight, registrar._run_from,
+                                                      registrar._image_match, registrar._native)
+
+    def spy_weight(*a, **k):
+        w = real_weight(*a, **k)
+        seen["region"].append(w)
+        return w
+
+    def spy_run(fixed, moving, start, steps, weights, *a, **k):
+        seen["run_weights"].append(list(weights))
+        return real_run(fixed, moving, start, steps, weights, *a, **k)
+
+    def spy_match(*a, region=None, **k):
+        seen["match_regions"].append(a[4] if len(a) > 4 else region)
+        return real_match(*a, region=region, **k) if len(a) <= 4 else real_match(*a, **k)
+
+    def spy_native(*a, region=False, **k):
+        seen["native_region"].append((region, a[4] if len(a) > 4 else k.get("weights")))
+        return real_native(*a, region=region, **k)
+
+    monkeypatch.setattr(reg_mod, "match_weight", spy_weight)
+    monkeypatch.setattr(registrar, "_run_from", spy_run)
+    monkeypatch.setattr(registrar, "_image_match", spy_match)
+    monkeypatch.setattr(registrar, "_native", spy_native)
     res_l = registrar(ct, cbct, resample_moving=False, roi=box_left)
+    monkeypatch.undo()
+    region_img = seen["region"][0]
+    assert region_img is not None and seen["run_weights"]
+    assert all(all(w is not region_img for w in ws) for ws in seen["run_weights"])
+    # the choice between starts sees the whole view; a swap check (if any) is scored inside the region, where the
+    # final estimate was fitted
+    starts_matches = seen["match_regions"][:1] if res_l.details["global_search"].get("search_start_ncc") else []
+    assert all(r is None for r in starts_matches)
+    assert all(r is None or r is region_img for r in seen["match_regions"])
+    assert seen["native_region"] and all(flag and any(w is region_img for w in ws)
+                                         for flag, ws in seen["native_region"])
     res_r = registrar(ct, cbct, resample_moving=False, roi=box_right)
     pts_l, pts_r = _box_points(box_left[:3], box_left[3:]), _box_points(box_right[:3], box_right[3:])
     assert _tre(res_l, left, pts_l) < 0.75

@@ -117,7 +117,7 @@ def test_rot90_view_sharing_is_exact():
     assert torch.allclose(qa, qb, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("kind", ["cone", "fan"])
+@pytest.mark.parametrize("kind", ["cone", "cone-symmetric", "fan"])
 def test_empty_margins_change_no_line_integral(kind, monkeypatch):
     """The projectors sweep only the occupied planes: an object off-centre in a grid with wide empty margins gives
     the line integrals of the full sweep over every plane (the reference: the span forced to the whole grid)."""
@@ -129,13 +129,20 @@ def test_empty_margins_change_no_line_integral(kind, monkeypatch):
     wide = Grid((30, 34, 12), (3.0, 3.0, 3.0), (-45.0, -51.0, -16.5))
     big = torch.zeros(wide.size)
     big[12:26, 22:32] = obj
-    if kind == "cone":
+    if kind == "cone-symmetric":  # square and centred: the four rotated copies are swept together (their joint span)
+        wide = Grid.centered((34, 34, 12), (3.0, 3.0, 3.0))
+        big = torch.zeros(wide.size)
+        big[14:28, 22:32] = obj
+        assert projector._quarter_symmetric(ConeBeamGeometry(num_views=16).fitted(110.0, 30.0, 3.0), wide)
+    if kind.startswith("cone"):
         geom = ConeBeamGeometry(num_views=16, start_angle=3.0).fitted(110.0, 30.0, 3.0)
         project = projector.cone_forward
     else:
         geom = FanBeamGeometry(num_views=16, start_angle=3.0).fitted(110.0, 3.0)
         project = projector.fan_forward
-    assert projector._occupied_span(big) == (12, 26) and projector._occupied_span(big.transpose(0, 1)) == (22, 32)
+    lo_x = 14 if kind == "cone-symmetric" else 12
+    assert projector._occupied_span(big) == (lo_x, lo_x + 14)
+    assert projector._occupied_span(big.transpose(0, 1)) == (22, 32)
     got = project(big, wide, geom, "cpu")
     monkeypatch.setattr(projector, "_occupied_span", lambda planes: (0, planes.shape[0]))
     want = project(big, wide, geom, "cpu")

@@ -136,6 +136,7 @@ def fbp_fan(
     grid: Grid,
     window: str = "ram-lak",
     device: str | torch.device | None = "auto",
+    fov_only: bool = True,
 ) -> torch.Tensor:
     """Slice-by-slice fan-beam filtered back projection (flat detector).
 
@@ -145,10 +146,12 @@ def fbp_fan(
         grid: output grid.
         window: filter window, one of :data:`FILTERS`.
         device: ``"cpu"``, ``"cuda"`` or ``"auto"``.
+        fov_only: reconstruct only inside the field of view every view sees (:meth:`FanBeamGeometry.fov_radius`;
+            :meth:`FanBeamGeometry.fitted` sizes it to hold the object) and leave 0 outside (since 0.4.4; ``False``:
+            the incomplete-data values there, as before).
 
     Returns:
-        ``[nx, ny, nz]`` float32 linear attenuation (1/mm); 0 outside the field of view every view sees (the
-        circle the detector covers: :meth:`FanBeamGeometry.fitted` sizes it to hold the object).
+        ``[nx, ny, nz]`` float32 linear attenuation (1/mm).
     """
     _check_full_scan(geometry.arc)
     dev = resolve_device(device)
@@ -156,4 +159,4 @@ def fbp_fan(
     cosw = (geometry.sdd / torch.sqrt(geometry.sdd**2 + u**2)).to(torch.float32)
     iso_pitch = float(geometry.pixel_pitch) / geometry.magnification  # type: ignore[arg-type]
     filtered = ramp_filter(sinogram.to(dev) * cosw, iso_pitch, window)
-    return fan_backproject(filtered, grid, geometry, dev, fov_only=True) * (math.pi / geometry.num_views)
+    return fan_backproject(filtered, grid, geometry, dev, fov_only=fov_only) * (math.pi / geometry.num_views)

@@ -191,3 +191,11 @@ class FanBeamGeometry(_CircularOrbit):
         return (torch.arange(n, dtype=torch.float64, device=device) - (n - 1) / 2) * self.pixel_pitch + (
             self.detector_offset
         )
+
+    def fov_radius(self) -> float:
+        """Radius (mm) of the circle about the axis seen by every view (the smaller side of an offset detector)."""
+        u = self.u_coords()
+        half = float(min(-u[0], u[-1])) + float(self.pixel_pitch) / 2  # type: ignore[arg-type]
+        if half <= 0:
+            return 0.0
+        return self.sod * math.sin(math.atan(half / self.sdd))
