@@ -166,7 +166,7 @@ def fov_mask(
         nu = u.numel()
         keep = max(2, int(round(nu * physics.detector_fraction)))
         half_u = min(half_u, keep * du / 2 - abs(geometry.detector_offset[0]))
-    radius = geometry.sod * math.sin(math.atan(max(half_u, 0.0) / geometry.sdd))
+    radius = geometry.radius_seen(half_u)
     if physics is not None and physics.fov_diameter_mm is not None:
         radius = min(radius, physics.fov_diameter_mm / 2)
     half_v = float(min(-v[0], v[-1])) + geometry.pixel_pitch[1] / 2  # type: ignore[index]

@@ -58,6 +58,17 @@ class _CircularOrbit:
         step = math.radians(self.arc) / self.num_views
         return math.radians(self.start_angle) + step * torch.arange(self.num_views, dtype=torch.float64, device=device)
 
+    def radius_seen(self, half_width_mm: float) -> float:
+        """Radius (mm) about the axis that a detector reaching ``half_width_mm`` from its centre on both sides sees
+        from every view: ``sod sin(atan(half / sdd))`` (0 for no width)."""
+        return self.sod * math.sin(math.atan(max(float(half_width_mm), 0.0) / self.sdd))
+
+    def fov_radius(self) -> float:
+        """Radius (mm) of the cylinder about the axis seen by every view (the transaxial field of view; with an
+        offset detector, the smaller side's)."""
+        u = self.u_coords()  # type: ignore[attr-defined]
+        return self.radius_seen(float(min(-u[0], u[-1])) + self._u_pitch / 2)
+
 
 @dataclass(frozen=True)
 class ConeBeamGeometry(_CircularOrbit):
@@ -129,13 +140,9 @@ class ConeBeamGeometry(_CircularOrbit):
         _, nv, _, dv = self._require_complete()
         return (torch.arange(nv, dtype=torch.float64, device=device) - (nv - 1) / 2) * dv + self.detector_offset[1]
 
-    def fov_radius(self) -> float:
-        """Radius (mm) of the cylinder about the axis seen by every view (the transaxial field of view)."""
-        u = self.u_coords()
-        half = float(min(-u[0], u[-1])) + self.pixel_pitch[0] / 2  # type: ignore[index]
-        if half <= 0:
-            return 0.0
-        return self.sod * math.sin(math.atan(half / self.sdd))
+    @property
+    def _u_pitch(self) -> float:
+        return float(self.pixel_pitch[0])  # type: ignore[index]
 
 
 @dataclass(frozen=True)
@@ -192,10 +199,6 @@ class FanBeamGeometry(_CircularOrbit):
             self.detector_offset
         )
 
-    def fov_radius(self) -> float:
-        """Radius (mm) of the circle about the axis seen by every view (the smaller side of an offset detector)."""
-        u = self.u_coords()
-        half = float(min(-u[0], u[-1])) + float(self.pixel_pitch) / 2  # type: ignore[arg-type]
-        if half <= 0:
-            return 0.0
-        return self.sod * math.sin(math.atan(half / self.sdd))
+    @property
+    def _u_pitch(self) -> float:
+        return float(self.pixel_pitch)  # type: ignore[arg-type]
