@@ -90,9 +90,9 @@ def main() -> None:
     out(f"monai-rigidreg {monai_rigidreg.__version__}; flag: confidence < {CONFIDENCE_THRESHOLD}; edge-gain limit "
         f"{LOCAL_GAIN_LIMIT}; swap disagreement 3 mm -> 0.5")
     registrar = monai_rigidreg.RigidRegistrar.from_bundle(device="cpu")
-    out("\n| CT | pair | error (mm) | success | confidence | local_gain | swap_tre_mm | tissue_on_air | start | "
-        "verdict |")
-    out("|---|---|---|---|---|---|---|---|---|---|")
+    out("\n| CT | pair | error (mm) | success | confidence | local_gain | swap_tre_mm | tissue_on_air | "
+        "region_shift_mm (blocks) | start | verdict |")
+    out("|---|---|---|---|---|---|---|---|---|---|---|")
     rng = np.random.default_rng(args.seed)
     spoiled: list[tuple[str, str, str, float, float]] = []
     counts = {"false alarm": 0, "flagged failure": 0, "missed failure": 0, "ok": 0}
@@ -113,6 +113,7 @@ def main() -> None:
         s = res["details"]["signals"]
         out(f"| {ct_name} | {pair_name} | {err:.2f} | {'yes' if ok else 'no'} | {res['confidence']:.2f} | "
             f"{s['local_gain']:.4f} | {s['swap_tre_mm']:.2f} | {s.get('tissue_on_air', float('nan')):.3f} | "
+            f"{s.get('region_shift_mm', float('nan')):.2f} ({s.get('region_blocks', '-')}) | "
             f"{res['details']['start']} | {verdict} |")
         if args.spoil:
             for label, matrix in _spoiled_poses(case, args.translations, args.rotations, rng):

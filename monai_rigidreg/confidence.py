@@ -5,9 +5,12 @@ A result is *flagged* (a likely failure: check the QC figure) when :func:`confid
 network-grid tensors: whether a small perturbation of the estimate aligns edges better (a correct estimate sits at
 the optimum; with a match region, e.g. ``--roi``, the edges inside it only), whether the estimate with the inputs
 swapped agrees with the inverse of this one, and how much of the CT's tissue it puts on CBCT air
-(:func:`tissue_on_air`: a gross failure, wherever its edge optimum lies). The first two are calibrated on simulated
+(:func:`tissue_on_air`: a gross failure, wherever its edge optimum lies); with ``--roi`` a fourth, computed on the
+images by the registrar: how far the estimate leaves the region's structures from where the CBCT shows them
+(:mod:`monai_rigidreg.region_check`). The first two are calibrated on simulated
 pairs with deliberately spoiled estimates (``benchmarks/bench_confidence.py``), the third on the clinical-geometry
-pairs (``benchmarks/bench_confidence_clinical.py --spoil``); ``tests/test_register.py`` pins that clearly wrong
+pairs (``benchmarks/bench_confidence_clinical.py --spoil``), the fourth on the clinical-geometry deformed pairs
+(``bench_confidence_clinical.py --groups deformed``); ``tests/test_register.py`` pins that clearly wrong
 estimates are flagged and right ones are not.
 
 A disagreement with the swapped-input estimate does not say which of the two is wrong. Above
@@ -34,6 +37,7 @@ from monai_rigidreg.geometry import (
     target_registration_error,
 )
 from monai_rigidreg.image_ops import erode, gradient_magnitude, masked_ncc, pyramid
+from monai_rigidreg.region_check import REGION_SHIFT_LIMIT_MM
 from monai_rigidreg.warp import warp_volume_params
 
 __all__ = [
@@ -145,6 +149,7 @@ def tissue_on_air(
 def confidence_score(
     local_gain: float, swap_tre_mm: float, gain_ref: float = LOCAL_GAIN_LIMIT, tre_ref_mm: float = 3.0,
     swap_counted: bool = True, tissue_on_air_share: float = float("nan"), air_ref: float = TISSUE_ON_AIR_LIMIT,
+    region_shift_mm: float = float("nan"), region_ref_mm: float = REGION_SHIFT_LIMIT_MM,
 ) -> float:
     """Combine the failure signals into a score in [0, 1] (below 0.5: flagged).
 
@@ -158,6 +163,9 @@ def confidence_score(
       :data:`SWAP_AGREE_MM`) and does not lower the score.
     * ``tissue_on_air_share``: :func:`tissue_on_air` of the estimate; ``air_ref`` gives 0.5 (NaN: not measured, no
       effect). A gross failure puts CT tissue on CBCT air whether or not the estimate sits at an edge optimum.
+    * ``region_shift_mm``: with a region of interest, the length of the median residual shift of its structures
+      (:func:`~monai_rigidreg.region_check.block_shifts`); ``region_ref_mm`` gives 0.5 (NaN: not measured or too
+      few blocks with structure, no effect).
 
     Each signal maps through a logistic to [0, 1]; the score is the smallest, so any failure mode flags.
     """
@@ -167,7 +175,9 @@ def confidence_score(
         s_swap = 1.0
     s_air = 1.0 / (1.0 + np.exp((tissue_on_air_share - air_ref) / 0.008)) if np.isfinite(tissue_on_air_share) \
         else 1.0
-    return float(min(s_gain, s_swap, s_air))
+    s_region = 1.0 / (1.0 + np.exp((region_shift_mm - region_ref_mm) / 0.25)) if np.isfinite(region_shift_mm) \
+        else 1.0
+    return float(min(s_gain, s_swap, s_air, s_region))
 
 
 def assess_estimate(

@@ -61,6 +61,7 @@ from monai_rigidreg.network_grid import NetworkGridSpec
 from monai_rigidreg.networks import cascade_register
 from monai_rigidreg.precision import refine_native
 from monai_rigidreg.provenance import bundle_record
+from monai_rigidreg.region_check import block_shifts
 
 __all__ = ["RegistrationResult", "RigidRegistrar", "register", "check_intensities", "fine_stage_switch"]
 
@@ -425,6 +426,97 @@ class RigidRegistrar:
         total = start @ params_to_matrix(residual, grid.center())
         return _Run(grid, fixed_t, moving_t, start, residual, total)
 
+    def _best_start(self, fixed_img: sitk.Image, moving_img: sitk.Image, fov_img: sitk.Image, run: _Run,
+                    cascade_steps: int | None, pose_weights: Sequence[sitk.Image], timings: dict[str, float],
+                    body: sitk.Image | None, region: sitk.Image | None) -> tuple[_Run, dict[str, Any], str]:
+        """The global search (:func:`~monai_rigidreg.global_init.global_search`) and, where its best candidate and
+        the estimate from the identity (``run``) disagree by more than ``SEARCH_AGREE_MM``, the network from the
+        search's ``search_starts`` best candidates; the estimate whose CBCT field of view matches the CT best
+        (:meth:`_image_match`, inside ``region`` when given) goes on, the identity's on a tie. Returns the winning
+        run, ``details.global_search`` and ``details.start`` (``"identity"`` or ``"search"``)."""
+        t = time.perf_counter()
+        candidates = global_search(fixed_img, moving_img, fov_img, hu_range=self.hu_range, fixed_body=body,
+                                   **self.search_settings)
+        agree = matrix_distance_mm(candidates[0].matrix, run.total, grid_points(run.grid, 8))
+        search: dict[str, Any] = {"best": candidates[0].to_dict(), "distance_to_identity_start_mm": round(agree, 2),
+                                  "candidates": [c.to_dict() for c in candidates]}
+        timings["global_search"] = time.perf_counter() - t
+        started = "identity"
+        if agree > SEARCH_AGREE_MM:
+            t = time.perf_counter()
+            alts = [self._run_from(fixed_img, moving_img, c.matrix, cascade_steps, pose_weights, timings, body)
+                    for c in candidates[: self.search_starts]]
+            scores = self._image_match(fixed_img, moving_img, fov_img, [run.total] + [a.total for a in alts], region)
+            search.update(identity_start_ncc=round(scores[0], 4), search_start_ncc=[round(v, 4) for v in scores[1:]])
+            k = int(np.argmax(np.nan_to_num(np.asarray(scores, dtype=np.float64), nan=-np.inf)))
+            if scores[k] > scores[0]:
+                run, started = alts[k - 1], "search"
+                search["start_rank"] = k - 1
+            timings["second_start"] = time.perf_counter() - t
+        return run, search, started
+
+    def _confidence(self, fixed_img: sitk.Image, moving_img: sitk.Image, fov_img: sitk.Image, fov_t: torch.Tensor,
+                    run: _Run, params: np.ndarray, weights: list[sitk.Image], weight_img: sitk.Image | None,
+                    check_region: bool, native: bool, may_replace: bool, details: dict[str, Any]
+                    ) -> tuple[np.ndarray, bool, dict[str, Any]]:
+        """The failure signals and the confidence of ``params`` (mm/deg about ``run.grid``'s centre), with the
+        swapped-input check: where the swapped estimate disagrees by more than ``SWAP_AGREE_MM``, the one whose CBCT
+        field of view matches the CT better (inside the match region ``weight_img``) is trusted, and a better
+        swapped estimate replaces ``params`` once (``may_replace``; after its own last level when ``native``).
+        ``check_region``: the region check (:func:`~monai_rigidreg.region_check.block_shifts`, an ROI was given).
+        Records ``details.swap_check`` (and ``start``, ``native_level`` on a replacement). Returns ``(params,
+        replaced, signals)``, ``signals["confidence"]`` included."""
+        grid = run.grid
+        grid_center = grid.center()
+        region = None if weight_img is None else weight_on_grid([weight_img], grid)[0]
+        replaced = False
+        while True:
+            # in the frame of the winning start: its resampled CBCT and the residual of the final estimate
+            to_start = invert_matrix(run.start)
+            residual = matrix_to_params(to_start @ params_to_matrix(params, grid_center), grid_center)
+            signals = self.assess(run.moving_t, run.fixed_t, grid, residual, fov_t, region=region)
+            swapped = run.start @ params_to_matrix(signals.pop("swap_params"), grid_center)
+            if not signals["swap_tre_mm"] > SWAP_AGREE_MM:
+                break
+            # the two estimates disagree: the one whose CBCT field of view matches the CT better is trusted (the rule
+            # that chooses between starts); a better swapped estimate replaces this one, once (not after --refine,
+            # which the user asked to start from the network's estimate, and not for the learned network alone,
+            # fine_stage=False, which must stay measurable as it is).
+            # Scored inside the match region even when the region only weighted the last level: the estimate judged
+            # here is the region's (after that level). Over the whole view instead, the twin (a whole-view network
+            # estimate) tends to win on deformed anatomy and its disagreement counts: seed-2500 deformed pairs, false
+            # alarms 2 -> 3 of 7 (bench_clinical_geometry_0.4.4_seed2500_deformed_swap_whole_view_*)
+            s_est, s_swap = self._image_match(fixed_img, moving_img, fov_img,
+                                              [params_to_matrix(params, grid_center), swapped], weight_img)
+            check = {"estimate_ncc": round(s_est, 4), "swapped_ncc": round(s_swap, 4),
+                     "swap_tre_mm": round(signals["swap_tre_mm"], 2)}
+            if s_swap > s_est and may_replace and not replaced:
+                replaced = True
+                details["swap_check"] = {**check, "replaced": True}
+                if native:
+                    # the last level from the swapped estimate: details.native_level describes this run
+                    swapped, details["native_level"] = self._native(fixed_img, moving_img, swapped, fov_img,
+                                                                    weights, grid, region=weight_img is not None)
+                params = matrix_to_params(swapped, grid_center)
+                details["start"] = "swapped"
+                continue
+            details.setdefault("swap_check", {**check, "replaced": False})
+            signals["swap_counted"] = bool(s_swap >= s_est)
+            break
+        if check_region and weight_img is not None:
+            # the region's structures against the CBCT (block matching): on flat or deformed anatomy an image optimum
+            # can leave them millimetres off while every other signal reads well
+            blocks = block_shifts(fixed_img, moving_img, params_to_matrix(params, grid_center), weight_img, fov_img)
+            shift = blocks.median_shift()
+            signals["region_shift_mm"] = float(np.linalg.norm(shift)) if np.all(np.isfinite(shift)) else float("nan")
+            signals["region_shift_vector_mm"] = [round(float(v), 2) for v in shift]
+            signals["region_blocks"] = blocks.count
+        signals["confidence"] = confidence_score(signals["local_gain"], signals["swap_tre_mm"],
+                                                 swap_counted=signals.get("swap_counted", True),
+                                                 tissue_on_air_share=signals["tissue_on_air"],
+                                                 region_shift_mm=signals.get("region_shift_mm", float("nan")))
+        return params, replaced, signals
+
     def _register(
         self,
         fixed: sitk.Image | str | Path,
@@ -501,32 +593,10 @@ class RigidRegistrar:
         if warnings:
             details.setdefault("warnings", []).extend(warnings)
         if global_init:
-            t = time.perf_counter()
-            candidates = global_search(fixed_img, moving_img, fov_img, hu_range=self.hu_range, fixed_body=body,
-                                       **self.search_settings)
-            best = candidates[0]
-            agree = matrix_distance_mm(best.matrix, run.total, grid_points(run.grid, 8))
-            search = {"best": best.to_dict(), "distance_to_identity_start_mm": round(agree, 2),
-                      "candidates": [c.to_dict() for c in candidates]}
-            timings["global_search"] = time.perf_counter() - t
-            if agree > SEARCH_AGREE_MM:
-                # the estimate from the identity and the search disagree: the network also starts from the search's
-                # best candidates, and the estimate whose CBCT field of view matches the CT best goes on (the
-                # identity's on a tie)
-                t = time.perf_counter()
-                alts = [self._run_from(fixed_img, moving_img, c.matrix, cascade_steps, pose_weights, timings, body)
-                        for c in candidates[: self.search_starts]]
-                scores = self._image_match(fixed_img, moving_img, fov_img, [run.total] + [a.total for a in alts],
-                                           None if region_last else weight_img)
-                search.update(identity_start_ncc=round(scores[0], 4),
-                              search_start_ncc=[round(v, 4) for v in scores[1:]])
-                k = int(np.argmax(np.nan_to_num(np.asarray(scores, dtype=np.float64), nan=-np.inf)))
-                if scores[k] > scores[0]:
-                    run = alts[k - 1]
-                    details["start"] = "search"
-                    search["start_rank"] = k - 1
-                timings["second_start"] = time.perf_counter() - t
-            details["global_search"] = search
+            run, details["global_search"], started = self._best_start(
+                fixed_img, moving_img, fov_img, run, cascade_steps, pose_weights, timings, body,
+                None if region_last else weight_img)
+            details["start"] = started
         grid = run.grid
         grid_center = grid.center()  # params are about it until re-expressed at the end
         net_params = matrix_to_params(run.total, grid_center)
@@ -570,45 +640,11 @@ class RigidRegistrar:
         confidence, flagged = float("nan"), False
         if assess:
             t = time.perf_counter()
-            region = None if weight_img is None else weight_on_grid([weight_img], grid)[0]
-            replaced = False
-            while True:
-                # in the frame of the winning start: its resampled CBCT and the residual of the final estimate
-                to_start = invert_matrix(run.start)
-                residual = matrix_to_params(to_start @ params_to_matrix(params, grid_center), grid_center)
-                signals = self.assess(run.moving_t, run.fixed_t, grid, residual, fov_t, region=region)
-                swapped = run.start @ params_to_matrix(signals.pop("swap_params"), grid_center)
-                if not signals["swap_tre_mm"] > SWAP_AGREE_MM:
-                    break
-                # the two estimates disagree: the one whose CBCT field of view matches the CT better is trusted
-                # (the rule that chooses between starts); a better swapped estimate replaces this one, once (not
-                # after --refine, which the user asked to start from the network's estimate, and not for the
-                # learned network alone, fine_stage=False, which must stay measurable as it is)
-                # scored inside the match region even when the region only weighted the last level: the estimate
-                # judged here is the region's (after that level). Over the whole view instead, the twin (a whole-view
-                # network estimate) tends to win on deformed anatomy and its disagreement counts: seed-2500 deformed
-                # pairs, false alarms 2 -> 3 of 7 (bench_clinical_geometry_0.4.4_seed2500_deformed_swap_whole_view_*)
-                s_est, s_swap = self._image_match(fixed_img, moving_img, fov_img,
-                                                  [params_to_matrix(params, grid_center), swapped], weight_img)
-                check = {"estimate_ncc": round(s_est, 4), "swapped_ncc": round(s_swap, 4),
-                         "swap_tre_mm": round(signals["swap_tre_mm"], 2)}
-                if s_swap > s_est and staged and not refine and not replaced:
-                    replaced = True
-                    details["swap_check"] = {**check, "replaced": True}
-                    if native:
-                        # the last level from the swapped estimate: details.native_level describes this run
-                        swapped, details["native_level"] = self._native(fixed_img, moving_img, swapped, fov_img,
-                                                                        weights, grid, region=weight_img is not None)
-                    params = matrix_to_params(swapped, grid_center)
-                    net_params = params.copy()
-                    details["start"] = "swapped"
-                    continue
-                details.setdefault("swap_check", {**check, "replaced": False})
-                signals["swap_counted"] = bool(s_swap >= s_est)
-                signals["confidence"] = confidence_score(signals["local_gain"], signals["swap_tre_mm"],
-                                                         swap_counted=signals["swap_counted"],
-                                                         tissue_on_air_share=signals["tissue_on_air"])
-                break
+            params, replaced, signals = self._confidence(fixed_img, moving_img, fov_img, fov_t, run, params, weights,
+                                                         weight_img, roi is not None, native, staged and not refine,
+                                                         details)
+            if replaced:
+                net_params = params.copy()
             timings["confidence"] = time.perf_counter() - t
             confidence = signals.pop("confidence")
             flagged = confidence < CONFIDENCE_THRESHOLD

@@ -9,10 +9,12 @@ import SimpleITK as sitk
 import torch
 from conftest import synth_ct
 
+from monai_rigidreg.confidence import cylindrical_fov_mask
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import Grid, matrix_to_sitk, params_to_matrix, recenter_params, target_registration_error
 from monai_rigidreg.global_init import DEFAULT_ROTATIONS_DEG, global_search, masked_ncc_map, matrix_distance_mm
 from monai_rigidreg.match_region import match_weight, parse_roi
+from monai_rigidreg.region_check import MIN_BLOCKS, block_shifts
 from monai_rigidreg.registration import RigidRegistrar
 
 ISO = np.array([20.0, -10.0, 15.0])
@@ -220,6 +222,14 @@ def test_roi_decides_which_of_two_differently_moving_halves_is_matched(ct, regis
     assert _tre(res_l, right, pts_l) > 3.0
     assert _tre(res_r, left, pts_r) > 3.0
     assert res_l.details["match_region"] == {"roi": list(box_left), "match": "soft", "applied_to": "last level"}
+    # the region check: the left box's structures sit where the CBCT shows them; the same estimate leaves the right
+    # box's structures several mm off (what the check reports, and flags above 3 mm, for a region matched wrongly)
+    for res in (res_l, res_r):
+        sig = res.details["signals"]
+        assert sig["region_blocks"] >= MIN_BLOCKS and sig["region_shift_mm"] < 1.0, sig
+    other = block_shifts(ct, cbct, res_l.matrix, match_weight(ct, box_right), cylindrical_fov_mask(cbct))
+    # (the right box reaches the 128 mm CBCT's edge: only the blocks whose search window is in view vote)
+    assert other.count >= 3 and np.linalg.norm(other.median_shift(min_blocks=3)) > 3.0
     # with the last level off the region weights the network instead and still picks the half
     no_last = RigidRegistrar.from_bundle(device="cpu", native_level=False)
     res_n = no_last(ct, cbct, resample_moving=False, roi=box_left)
