@@ -1,4 +1,9 @@
-"""The last level's intensity-bias model on the clinical-geometry pairs (issue 15's precision target).
+"""The last level's intensity-bias model, or its local-contrast scale, on the clinical-geometry pairs (issue 15's
+precision target).
+
+``--highpass-sigmas``: instead of the bias degrees, the Gaussian (mm) of the last level's local-contrast feature
+(``RigidRegistrar(native_highpass_sigma_mm=...)``; 16 is the fine stage's own, the bundle's setting before 0.4.5),
+the bias degrees as the bundle ships them.
 
 The last level (:func:`monai_rigidreg.precision.refine_native`) estimates the pose jointly with an intensity bias, a
 polynomial per feature channel (``RigidRegistrar(native_bias_degree=..., native_bias_degree_roi=...)``; the
@@ -16,6 +21,8 @@ Usage::
         --cases-per-group 5 --simulate-only --output-dir bench_out/clinical   # the pairs
     python benchmarks/bench_native_bias.py --pairs-dir bench_out/clinical --degrees 2 0 -1 \\
         --results benchmarks/results/bench_native_bias_2026-12-02.txt
+    python benchmarks/bench_native_bias.py --pairs-dir bench_out/clinical --groups small large deformed \
+        --highpass-sigmas 16 4 3 --results benchmarks/results/bench_native_highpass_2026-12-02.txt
 """
 
 from __future__ import annotations
@@ -38,19 +45,29 @@ from bench_common import Tee  # noqa: E402
 def main() -> None:
     ap = pairs_parser(__doc__, ["small", "large"])
     ap.add_argument("--degrees", nargs="+", type=int, default=[2, 0, -1])
+    ap.add_argument("--highpass-sigmas", nargs="+", type=float, default=None,
+                    help="vary native_highpass_sigma_mm instead of the bias degrees")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     from monai_rigidreg.simulation.clinical import tre_points
 
     out = Tee()
     out(f"command: python {' '.join(sys.argv)}")
-    out(f"monai-rigidreg {monai_rigidreg.__version__}; the default path, native_bias_degree and "
-        "native_bias_degree_roi varied together")
-    registrars = {d: monai_rigidreg.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=d,
-                                                               native_bias_degree_roi=d)
-                  for d in args.degrees}
-    rows: list[tuple[str, dict[int, float]]] = []
-    success: list[dict[int, bool]] = []
+    if args.highpass_sigmas:
+        out(f"monai-rigidreg {monai_rigidreg.__version__}; the default path, native_highpass_sigma_mm varied")
+        label = "sigma"
+        registrars = {v: monai_rigidreg.RigidRegistrar.from_bundle(device="cpu", native_highpass_sigma_mm=v)
+                      for v in args.highpass_sigmas}
+    else:
+        out(f"monai-rigidreg {monai_rigidreg.__version__}; the default path, native_bias_degree and "
+            "native_bias_degree_roi varied together")
+        label = "degree"
+        registrars = {d: monai_rigidreg.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=d,
+                                                                   native_bias_degree_roi=d)
+                      for d in args.degrees}
+    values = list(registrars)
+    rows: list[tuple[str, dict[float, float]]] = []
+    success: list[dict[float, bool]] = []
     for ct_name, pair_name, ct, case in cached_pairs(args.pairs_dir, args.groups, out):
         points = tre_points(ct, case.matrix, case.fov)
         deformed = case.record["deformation"] is not None
@@ -64,21 +81,21 @@ def main() -> None:
         rows.append((f"{ct_name} {pair_name}", tre))
         success.append(ok)
         print(rows[-1][0], {d: round(v, 3) for d, v in tre.items()}, flush=True)
-    out("\n| case | " + " | ".join(f"degree {d}" for d in args.degrees) + " |")
-    out("|---|" + "---|" * len(args.degrees))
+    out("\n| case | " + " | ".join(f"{label} {d:g}" for d in values) + " |")
+    out("|---|" + "---|" * len(values))
     for name, tre in rows:
-        out(f"| {name} | " + " | ".join(f"{tre[d]:.3f}" for d in args.degrees) + " |")
+        out(f"| {name} | " + " | ".join(f"{tre[d]:.3f}" for d in values) + " |")
     common = [tre for (_, tre), ok in zip(rows, success) if all(ok.values())]
-    out(f"\nover the {len(common)} cases every degree registers (TRE < {SUCCESS_MM} mm; deformed: landmark error "
+    out(f"\nover the {len(common)} cases every {label} registers (TRE < {SUCCESS_MM} mm; deformed: landmark error "
         f"< floor + {SUCCESS_MM} mm); error = TRE, on deformed pairs the landmark error:")
-    out("| degree | successes (all cases) | mean error (mm) | median error (mm) | better than degree "
-        f"{args.degrees[0]} on |")
+    out(f"| {label} | successes (all cases) | mean error (mm) | median error (mm) | better than {label} "
+        f"{values[0]:g} on |")
     out("|---|---|---|---|---|")
-    for d in args.degrees:
+    for d in values:
         vals = np.array([t[d] for t in common])
-        ref = np.array([t[args.degrees[0]] for t in common])
+        ref = np.array([t[values[0]] for t in common])
         n_ok = sum(ok[d] for ok in success)
-        out(f"| {d} | {n_ok} of {len(rows)} | {vals.mean():.3f} | {np.median(vals):.3f} | "
+        out(f"| {d:g} | {n_ok} of {len(rows)} | {vals.mean():.3f} | {np.median(vals):.3f} | "
             f"{int((vals < ref).sum())} of {len(vals)} |")
     if args.results is not None:
         args.results.parent.mkdir(parents=True, exist_ok=True)

@@ -24,7 +24,7 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_BUNDLE_NAME = "cbct_ct_rigid"
 SETTING_KEYS = ("network_size", "network_spacing", "cascade_steps", "global_init", "search_starts", "native_level",
-                "native_bias_degree", "native_bias_degree_roi")
+                "native_bias_degree", "native_bias_degree_roi", "native_highpass_sigma_mm")
 
 
 def default_bundle_path() -> Path:

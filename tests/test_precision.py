@@ -105,5 +105,21 @@ def test_registrar_passes_its_native_bias_degree_to_the_last_level(monkeypatch):
             assert seen[-1] == degree
     with pytest.raises(InputError, match="native_bias_degree"):
         reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=-2)
+    # the local-contrast scale: the bundle's 4 mm, or the fine stage's own (16 mm) when None; <= 0 refused
+    sigmas = []
+
+    def record_sigma(*args, **kwargs):
+        sigmas.append(kwargs["highpass_sigma_mm"])
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(reg_mod, "refine_native", record_sigma)
+    shipped = reg_mod.RigidRegistrar.from_bundle(device="cpu")
+    own = reg_mod.RigidRegistrar.from_bundle(device="cpu", native_highpass_sigma_mm=None)
+    for registrar in (shipped, own):
+        with pytest.raises(RuntimeError, match="stop"):
+            registrar._native(None, None, np.eye(4), None, [], None)
+    assert sigmas == [4.0, own.network.fine_stage.highpass_sigma_mm] and sigmas[1] == 16.0
+    with pytest.raises(InputError, match="native_highpass_sigma_mm"):
+        reg_mod.RigidRegistrar.from_bundle(device="cpu", native_highpass_sigma_mm=0.0)
     with pytest.raises(InputError, match="native_bias_degree_roi"):
         reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree_roi=-3)
