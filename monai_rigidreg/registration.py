@@ -513,7 +513,12 @@ class RigidRegistrar:
                 details["start"] = "swapped"
                 continue
             details.setdefault("swap_check", {**check, "replaced": False})
-            signals["swap_counted"] = bool(s_swap >= s_est)
+            # a worse twin does not count against the estimate, unless the estimate is itself a replacing twin: then
+            # the two directions kept disagreeing and neither settles the pose (a clinical-geometry head pair ended
+            # 9.3 mm off that way, every other signal reading well; bench_confidence_clinical_0.4.5_*)
+            signals["swap_counted"] = bool(s_swap >= s_est) or replaced
+            if replaced:
+                details["swap_check"]["after_replacement"] = check
             break
         if check_region and weight_img is not None:
             # the region's structures against the CBCT (block matching): on flat or deformed anatomy an image optimum

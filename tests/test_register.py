@@ -393,6 +393,45 @@ def test_a_worse_swapped_estimate_does_not_count_against_a_right_one(fast_pair, 
     assert confidence_score(0.0, 8.0, swap_counted=False) > 0.5
 
 
+def test_a_replacing_twin_that_disagrees_with_its_own_twin_is_flagged(fast_pair, shipped_registrar, monkeypatch):
+    """The last level returns an estimate 12 mm off once, so the swapped estimate replaces it (as above); that
+    replacement's own twin is then made 15 mm wrong: it matches worse, but after a replacement the two directions
+    kept disagreeing, so the disagreement counts and the result is flagged (not so without the replacement, see
+    the test above)."""
+    import monai_rigidreg.confidence as conf_mod
+    import monai_rigidreg.registration as reg_mod
+
+    real_native, real_assess = reg_mod.refine_native, conf_mod.assess_estimate
+    native_calls, assess_calls = [], []
+
+    def spoiled_once(fixed, moving, matrix, *args, **kwargs):
+        out, grid = real_native(fixed, moving, matrix, *args, **kwargs)
+        native_calls.append(1)
+        if len(native_calls) == 1:
+            out = out @ params_to_matrix([12.0, 0.0, 0.0, 0.0, 0.0, 0.0], np.zeros(3))
+        return out, grid
+
+    def wrong_second_swap(moving_t, fixed_t, grid, params, fov, estimate=None, **kwargs):
+        assess_calls.append(1)
+        if estimate is not None and len(assess_calls) > 1:
+            estimate_ = estimate
+
+            def estimate(m, f):
+                return estimate_(m, f) + np.array([0.0, 15.0, 0, 0, 0, 0])
+        return real_assess(moving_t, fixed_t, grid, params, fov, estimate, **kwargs)
+
+    monkeypatch.setattr(reg_mod, "refine_native", spoiled_once)
+    monkeypatch.setattr(reg_mod, "assess_estimate", wrong_second_swap)
+    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    check = res.details["swap_check"]
+    assert check["replaced"] and res.details["start"] == "swapped" and len(assess_calls) == 2
+    after = check["after_replacement"]
+    assert after["swap_tre_mm"] > 10.0 and after["swapped_ncc"] < after["estimate_ncc"]
+    assert res.details["signals"]["swap_counted"] is True
+    assert _fast_pair_tre(fast_pair, res) < 2.0  # the estimate itself is right; the flag says it is unsettled
+    assert res.flagged
+
+
 def test_edge_test_looks_inside_the_match_region_only(pair, small_registrar):
     """A CBCT whose half beyond x = centre moved 6 mm further: over the whole field of view the right estimate for
     the other half loses edge alignment to a perturbation (gain above the limit); restricted to that half (the
