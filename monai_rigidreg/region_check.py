@@ -11,12 +11,14 @@ search window inside the CBCT's field of view) vote. The weighted median of thei
 ``contrast^2 * peak^2``) is how far, in the CT frame, the estimate leaves the region's structures from where the
 CBCT shows them: ``T_true ~ T_est o translate(shift)``.
 
-Why a median of block shifts and not a correction: measured on the clinical-geometry deformed pairs (two seeds, 20
-pairs; ``python benchmarks/bench_confidence_clinical.py --groups deformed``), the median shift is 0.2-2.0 mm on
-every pair whose landmark error is within 2 mm of the best rigid fit and 3.2-3.8 mm on two of the three that are
-not, while applying the shift as a translation (iterated) made two head pairs worse: the blocks on flat tissue are
-reliable enough to say "off by more than a clinical tolerance", not to steer. A mean instead of the median let one
-flat block's spurious 17 mm peak raise a correct pair to 8.4 mm.
+Why a median of block shifts and not a correction: measured on the clinical-geometry deformed pairs (seeds 1500 and
+2500, 20 pairs; ``python benchmarks/bench_confidence_clinical.py --pairs-dir ... --groups deformed``), the median
+shift is 0.1-2.1 mm on every pair whose landmark error is within 2 mm of the best rigid fit and 3.5-4.1 mm on the
+failures it votes on (``bench_confidence_clinical_0.4.5_pre_highpass_*deformed*`` and, with 0.4.5's last level,
+``bench_confidence_clinical_0.4.5_*``), while applying the shift as a translation (iterated; an experiment, not
+kept) made two head pairs worse: the blocks on flat tissue are reliable enough to say "off by more than a clinical
+tolerance", not to steer. In the same (ad-hoc, unscripted) experiment a weighted mean
+instead of the median let one flat block's spurious peak push a correct pair far past the limit.
 """
 
 from __future__ import annotations
@@ -35,11 +37,11 @@ __all__ = ["REGION_SHIFT_LIMIT_MM", "MIN_BLOCKS", "BlockShifts", "region_bounds"
 REGION_SHIFT_LIMIT_MM = 3.0
 """Median residual shift of the region's structures (mm) that scores 0.5 in
 :func:`~monai_rigidreg.confidence.confidence_score`: a common clinical action level for a target-region match.
-On the 20 clinical-geometry deformed pairs of seeds 1500 and 2500 the successes measured 0.2-2.0 mm and the flagged
-failures 3.2 and 3.8 mm (``bench_confidence_clinical_0.4.5_*``)."""
+On the 20 clinical-geometry deformed pairs of seeds 1500 and 2500 the successes measured 0.1-2.1 mm and the
+failures it voted on 3.5-4.1 mm (module docstring)."""
 MIN_BLOCKS = 5
 """Fewer blocks with structure than this: the check abstains (NaN): a shift voted by one or two blocks on flat tissue
-is not evidence (measured: a head pair with one usable block read 2.7 mm while within tolerance)."""
+is not evidence (on the head pairs' flat brain one or two blocks often vote, and their reading there is noise)."""
 
 
 @dataclass
