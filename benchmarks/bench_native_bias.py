@@ -21,8 +21,8 @@ Usage::
         --cases-per-group 5 --simulate-only --output-dir bench_out/clinical   # the pairs
     python benchmarks/bench_native_bias.py --pairs-dir bench_out/clinical --degrees 2 0 -1 \\
         --results benchmarks/results/bench_native_bias_2026-12-02.txt
-    python benchmarks/bench_native_bias.py --pairs-dir bench_out/clinical --groups small large deformed \
-        --highpass-sigmas 16 4 3 --results benchmarks/results/bench_native_highpass_2026-12-02.txt
+    python benchmarks/bench_native_bias.py --pairs-dir bench_out/clinical --groups small large \\
+        --highpass-sigmas 16 4 --threads 2 --results benchmarks/results/bench_native_highpass_2026-12-02.txt
 """
 
 from __future__ import annotations

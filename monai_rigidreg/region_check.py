@@ -139,8 +139,8 @@ def block_shifts(
             inside (``None``: no such restriction).
         spacing_mm: sampling grid spacing (an axis-aligned LPS grid in the CT frame).
         block_mm: block edge length; ``search_mm``: the largest shift tried along each axis.
-        blocks_per_axis: blocks along each axis (their centres are spread evenly over the region's box; a box
-            smaller than a block gets one block on that axis).
+        blocks_per_axis: the most blocks along each axis (their centres spread evenly over the region's box, no
+            closer than half a block; a box smaller than a block gets one block on that axis).
         hu_window: intensities are clipped to this window before matching.
         min_contrast_hu: a block whose CT standard deviation is below this (flat tissue) does not vote.
         min_peak: a block whose best NCC is below this does not vote.
@@ -158,18 +158,21 @@ def block_shifts(
     centers_axes = []
     for a in range(3):
         c0, c1 = lo[a] + half, hi[a] - half
-        centers_axes.append(np.linspace(c0, c1, blocks_per_axis) if c1 > c0 else np.array([(lo[a] + hi[a]) / 2.0]))
+        # at most blocks_per_axis, and no closer than half a block: on a small box, heavily overlapping blocks would
+        # count one structure (or one spurious peak) several times towards MIN_BLOCKS and the median
+        n = min(blocks_per_axis, 1 + int(np.floor((c1 - c0) / (half + 0.5 * spacing_mm) + 1e-9))) if c1 > c0 else 1
+        centers_axes.append(np.linspace(c0, c1, n) if n > 1 else np.array([(lo[a] + hi[a]) / 2.0]))
     centers = np.array(np.meshgrid(*centers_axes, indexing="ij")).reshape(3, -1).T
     # one sampling grid over every block and its search margin; each block's corner snapped to it
     g_lo = centers.min(0) - half - r * spacing_mm
     size = np.ceil((centers.max(0) + half + r * spacing_mm - g_lo) / spacing_mm).astype(int) + 1
     grid = Grid(tuple(int(s) for s in size), (spacing_mm,) * 3, tuple(g_lo))
-    f = _sample(sitk.Cast(fixed, sitk.sitkFloat32), grid, np.eye(4), sitk.sitkLinear, hu_window[0])
-    m = _sample(sitk.Cast(moving, sitk.sitkFloat32), grid, fixed_to_moving, sitk.sitkLinear, hu_window[0])
+    f = _sample(fixed, grid, np.eye(4), sitk.sitkLinear, hu_window[0])  # resampled to float32 (no copy first)
+    m = _sample(moving, grid, fixed_to_moving, sitk.sitkLinear, hu_window[0])
     f, m = f.clamp(*hu_window), m.clamp(*hu_window)
-    reg = _sample(sitk.Cast(region, sitk.sitkFloat32), grid, np.eye(4), sitk.sitkNearestNeighbor, 0.0) > 0.5
+    reg = _sample(region, grid, np.eye(4), sitk.sitkNearestNeighbor, 0.0) > 0.5
     fov = None if moving_fov is None else _sample(
-        sitk.Cast(moving_fov, sitk.sitkFloat32), grid, fixed_to_moving, sitk.sitkNearestNeighbor, 0.0) > 0.5
+        moving_fov, grid, fixed_to_moving, sitk.sitkNearestNeighbor, 0.0) > 0.5
     corner = np.round((centers - half - g_lo) / spacing_mm).astype(int)  # block start (index) per block
     templates, windows, in_region, in_fov = [], [], [], []
     for i, j, k in corner:

@@ -182,8 +182,9 @@ class RigidRegistrar:
         native_highpass_sigma_mm: the Gaussian (mm) of the last level's local-contrast feature (``None``: the fine
             stage's, 16 mm, which the network grid was tuned with; the bundle's ``native_highpass_sigma_mm`` is 4
             since 0.4.5). At the inputs' own resolution the finer contrast aligns better: on the clinical-geometry
-            pairs the rigid successes' mean TRE 0.40 -> 0.25 mm and the deformed pairs' landmark error 2.03 -> 1.89 mm
-            (seed 1500; ``python benchmarks/bench_native_highpass.py``, ``bench_native_highpass_*``).
+            pairs the rigid successes' mean TRE 0.45 -> 0.27 mm (seed 1500) and 0.44 -> 0.23 mm (seed 2500), better
+            on 19 of 19 pairs in each set (``python benchmarks/bench_native_bias.py --highpass-sigmas 16 4``,
+            ``bench_native_highpass_*``).
 
     Build it once and reuse it: ``registrar = RigidRegistrar.from_bundle()`` then
     ``monai_rigidreg.register(ct, cbct, model=registrar)`` (or ``registrar(ct, cbct)``).
@@ -469,13 +470,14 @@ class RigidRegistrar:
 
     def _confidence(self, fixed_img: sitk.Image, moving_img: sitk.Image, fov_img: sitk.Image, fov_t: torch.Tensor,
                     run: _Run, params: np.ndarray, weights: list[sitk.Image], weight_img: sitk.Image | None,
-                    check_region: bool, native: bool, may_replace: bool, details: dict[str, Any]
+                    roi_img: sitk.Image | None, native: bool, may_replace: bool, details: dict[str, Any]
                     ) -> tuple[np.ndarray, bool, dict[str, Any]]:
         """The failure signals and the confidence of ``params`` (mm/deg about ``run.grid``'s centre), with the
         swapped-input check: where the swapped estimate disagrees by more than ``SWAP_AGREE_MM``, the one whose CBCT
         field of view matches the CT better (inside the match region ``weight_img``) is trusted, and a better
         swapped estimate replaces ``params`` once (``may_replace``; after its own last level when ``native``).
-        ``check_region``: the region check (:func:`~monai_rigidreg.region_check.block_shifts`, an ROI was given).
+        ``roi_img``: the ROI's mask on the CT for the region check (:func:`~monai_rigidreg.region_check.block_shifts`;
+        ``None``: no ROI, no check).
         Records ``details.swap_check`` (and ``start``, ``native_level`` on a replacement). Returns ``(params,
         replaced, signals)``, ``signals["confidence"]`` included."""
         grid = run.grid
@@ -520,10 +522,10 @@ class RigidRegistrar:
             if replaced:
                 details["swap_check"]["after_replacement"] = check
             break
-        if check_region and weight_img is not None:
+        if roi_img is not None:
             # the region's structures against the CBCT (block matching): on flat or deformed anatomy an image optimum
             # can leave them millimetres off while every other signal reads well
-            blocks = block_shifts(fixed_img, moving_img, params_to_matrix(params, grid_center), weight_img, fov_img)
+            blocks = block_shifts(fixed_img, moving_img, params_to_matrix(params, grid_center), roi_img, fov_img)
             shift = blocks.median_shift()
             signals["region_shift_mm"] = float(np.linalg.norm(shift)) if np.all(np.isfinite(shift)) else float("nan")
             signals["region_shift_vector_mm"] = [round(float(v), 2) for v in shift]
@@ -657,8 +659,11 @@ class RigidRegistrar:
         confidence, flagged = float("nan"), False
         if assess:
             t = time.perf_counter()
+            # the region check looks at the ROI itself (with --match bone too: the blocks need the soft tissue
+            # around the bone to match, and the box's layout of blocks)
+            roi_img = None if roi is None else weight_img if match == "soft" else match_weight(fixed_img, roi)
             params, replaced, signals = self._confidence(fixed_img, moving_img, fov_img, fov_t, run, params, weights,
-                                                         weight_img, roi is not None, native, staged and not refine,
+                                                         weight_img, roi_img, native, staged and not refine,
                                                          details)
             if replaced:
                 net_params = params.copy()

@@ -93,3 +93,45 @@ def test_confidence_flags_a_region_left_beyond_the_limit():
     assert confidence_score(**ok, region_shift_mm=REGION_SHIFT_LIMIT_MM + 0.5) < 0.2
     assert confidence_score(**ok, region_shift_mm=float("nan")) == confidence_score(**ok)
     assert MIN_BLOCKS >= 3
+
+
+@pytest.mark.parametrize("voxels, per_axis", [(12, 1), (15, 1), (20, 2), (24, 3), (36, 3)])
+def test_blocks_on_a_small_box_stay_apart(ct, voxels, per_axis):
+    # a box of `voxels` voxels per axis (2 mm): at most 3 blocks per axis, no closer than half a block (12 mm), so a
+    # small box cannot count one structure several times towards MIN_BLOCKS
+    lo = 32 - voxels // 2
+    blocks = block_shifts(ct, _moving(ct, np.eye(4)), np.eye(4), _box(ct, lo, lo + voxels))
+    assert len(blocks.centers) == per_axis**3
+    for a in range(3):
+        c = np.unique(np.round(blocks.centers[:, a], 6))
+        assert len(c) == per_axis and (per_axis == 1 or np.diff(c).min() >= 12.0 - 2.0)  # snapped to the 2 mm grid
+    if per_axis == 1:
+        assert np.all(np.isnan(blocks.median_shift()))  # one block: the check abstains
+
+
+def test_a_block_votes_only_when_half_of_it_is_in_the_region(ct):
+    # an L-shaped region: the usual cube without its x > 1 mm, z > 1 mm quarter (same bounding box, same layout);
+    # the blocks inside the missing quarter do not vote, those on the other side all do
+    region = _box(ct)
+    region[32:52, :, 32:52] = 0
+    blocks = block_shifts(ct, _moving(ct, np.eye(4)), np.eye(4), region)
+    assert len(blocks.centers) == 27
+    x, z = blocks.centers[:, 0], blocks.centers[:, 2]
+    assert not np.any(blocks.used & (x > 20.0) & (z > 20.0))
+    assert np.all(blocks.used[x < -20.0])
+
+
+def test_fov_mask_is_carried_through_the_estimate(ct):
+    # the CBCT frame is the CT frame moved 30 mm along z: its field of view (CBCT frame) covers CBCT z >= 31 mm, i.e.
+    # CT z >= 1 mm; a mask read in the CT frame would admit the lower blocks instead
+    estimate = _translation((0.0, 0.0, 30.0))
+    cbct_grid_img = sitk.Image(ct.GetSize(), sitk.sitkUInt8)
+    cbct_grid_img.SetSpacing(ct.GetSpacing())
+    cbct_grid_img.SetOrigin((-63.0, -63.0, -33.0))  # the CBCT's grid, shifted with it
+    fov = cbct_grid_img
+    fov[:, :, 32:] = 1  # CBCT z >= 31 mm
+    cbct = sitk.Resample(ct, cbct_grid_img, sitk.TranslationTransform(3, (0.0, 0.0, -30.0)), sitk.sitkLinear, -1000.0)
+    blocks = block_shifts(ct, cbct, estimate, _box(ct), moving_fov=fov)
+    assert blocks.count > 0
+    assert np.all(blocks.centers[blocks.used, 2] - 12.0 - 10.0 >= 0.0)
+    np.testing.assert_allclose(blocks.median_shift(min_blocks=1), [0.0, 0.0, 0.0], atol=0.2)
