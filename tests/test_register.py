@@ -343,14 +343,9 @@ def _fast_pair_tre(fast_pair, res) -> float:
                                            center=res.center))
 
 
-def test_a_better_swapped_estimate_replaces_a_wrong_one(fast_pair, shipped_registrar, monkeypatch):
-    """The last level is made to return an estimate 12 mm off (once); the swapped-input estimate disagrees, matches
-    the images better, and replaces it after its own last level: the result is right again, in the right frame
-    (a composition in the wrong order or direction would leave it centimetres off)."""
-    import monai_rigidreg.registration as reg_mod
-
-    real = reg_mod.refine_native
-    calls = []
+def _last_level_spoiled_once(real):
+    """A ``refine_native`` stand-in whose first result is moved 12 mm along x, and the list its calls append to."""
+    calls: list[int] = []
 
     def spoiled_once(fixed, moving, matrix, *args, **kwargs):
         out, grid = real(fixed, moving, matrix, *args, **kwargs)
@@ -359,6 +354,16 @@ def test_a_better_swapped_estimate_replaces_a_wrong_one(fast_pair, shipped_regis
             out = out @ params_to_matrix([12.0, 0.0, 0.0, 0.0, 0.0, 0.0], np.zeros(3))
         return out, grid
 
+    return spoiled_once, calls
+
+
+def test_a_better_swapped_estimate_replaces_a_wrong_one(fast_pair, shipped_registrar, monkeypatch):
+    """The last level is made to return an estimate 12 mm off (once); the swapped-input estimate disagrees, matches
+    the images better, and replaces it after its own last level: the result is right again, in the right frame
+    (a composition in the wrong order or direction would leave it centimetres off)."""
+    import monai_rigidreg.registration as reg_mod
+
+    spoiled_once, calls = _last_level_spoiled_once(reg_mod.refine_native)
     monkeypatch.setattr(reg_mod, "refine_native", spoiled_once)
     res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
     assert len(calls) == 2  # the spoiled estimate, then the swapped one's last level
@@ -401,15 +406,9 @@ def test_a_replacing_twin_that_disagrees_with_its_own_twin_is_flagged(fast_pair,
     import monai_rigidreg.confidence as conf_mod
     import monai_rigidreg.registration as reg_mod
 
-    real_native, real_assess = reg_mod.refine_native, conf_mod.assess_estimate
-    native_calls, assess_calls = [], []
-
-    def spoiled_once(fixed, moving, matrix, *args, **kwargs):
-        out, grid = real_native(fixed, moving, matrix, *args, **kwargs)
-        native_calls.append(1)
-        if len(native_calls) == 1:
-            out = out @ params_to_matrix([12.0, 0.0, 0.0, 0.0, 0.0, 0.0], np.zeros(3))
-        return out, grid
+    real_assess = conf_mod.assess_estimate
+    spoiled_once, _ = _last_level_spoiled_once(reg_mod.refine_native)
+    assess_calls = []
 
     def wrong_second_swap(moving_t, fixed_t, grid, params, fov, estimate=None, **kwargs):
         assess_calls.append(1)
