@@ -241,6 +241,36 @@ def test_roi_decides_which_of_two_differently_moving_halves_is_matched(ct, regis
     assert _tre(res_n, left, pts_l) < 1.5 and _tre(res_n, right, pts_l) > 3.0
 
 
+def test_region_check_uses_the_roi_box_also_with_a_bone_match(ct, registrar, monkeypatch):
+    """With --roi and --match bone the last level is weighted by the bone inside the box, but the region check's blocks
+    tile the box itself (the bone's own bounding box would shrink and thin them out); the check reports a small
+    residual on a right registration."""
+    import monai_rigidreg.registration as reg_mod
+    from monai_rigidreg.region_check import region_bounds
+
+    motion = [6.0, -4.0, 3.0, 2.0, -3.0, 4.0]
+    cbct = _cbct(ct, params_to_matrix(motion, ISO), seed=7)
+    box = (ISO[0] - 35, ISO[1] - 35, ISO[2] - 35, ISO[0] + 35, ISO[1] + 35, ISO[2] + 35)
+    seen = []
+    real = reg_mod.block_shifts
+
+    def spy(fixed, moving, matrix, region, *a, **k):
+        seen.append(region)
+        return real(fixed, moving, matrix, region, *a, **k)
+
+    monkeypatch.setattr(reg_mod, "block_shifts", spy)
+    res = registrar(ct, cbct, resample_moving=False, roi=box, match="bone")
+    assert len(seen) == 1
+    region = sitk.GetArrayViewFromImage(seen[0]) > 0.5
+    in_box = sitk.GetArrayViewFromImage(match_weight(ct, box)) > 0.5
+    bone = sitk.GetArrayViewFromImage(match_weight(ct, box, "bone")) > 0.5
+    assert np.array_equal(region, in_box) and bone.sum() < 0.9 * in_box.sum()  # the box, not the bone in it
+    assert np.allclose(np.concatenate(region_bounds(seen[0])), np.concatenate(region_bounds(match_weight(ct, box))))
+    assert _tre(res, motion, _box_points(box[:3], box[3:])) < 1.0
+    sig = res.details["signals"]
+    assert sig["region_blocks"] >= 1 and not sig.get("region_shift_mm", 0.0) > 1.0, sig
+
+
 def test_image_match_scores_inside_the_match_region(ct):
     """fov_similarity with a region scores each estimate where the region lies: on a CBCT whose two halves moved
     differently, the left half's motion wins inside a left box and the right half's inside a right box (the rule
