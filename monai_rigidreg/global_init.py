@@ -41,6 +41,7 @@ from monai_rigidreg.grid_sampling import (
     sitk_on_grid,
     sitk_tensor,
 )
+from monai_rigidreg.image_ops import subvoxel_peaks
 
 __all__ = ["SearchCandidate", "global_search", "masked_ncc_map", "volume_spectra", "DEFAULT_ROTATIONS_DEG",
            "matrix_distance_mm", "fov_similarity", "SEARCH_AGREE_MM"]
@@ -155,24 +156,6 @@ def volume_spectra(volume: torch.Tensor, fft_dtype: torch.dtype = torch.float64
     return torch.fft.rfftn(f.to(fft_dtype)), torch.fft.rfftn((f * f).to(fft_dtype))
 
 
-def _subvoxel_peak(ncc: torch.Tensor) -> tuple[np.ndarray, float]:
-    """Index of the maximum of ``ncc`` refined by a parabola through its neighbours on each axis, and the maximum."""
-    flat = int(torch.argmax(ncc))
-    idx = np.array(np.unravel_index(flat, tuple(ncc.shape)), dtype=np.int64)
-    peak = float(ncc.flatten()[flat])
-    sub = idx.astype(np.float64)
-    for ax in range(3):
-        if 0 < idx[ax] < ncc.shape[ax] - 1:
-            lo, hi = idx.copy(), idx.copy()
-            lo[ax] -= 1
-            hi[ax] += 1
-            cm, cp = float(ncc[tuple(lo)]), float(ncc[tuple(hi)])
-            den = cm - 2.0 * peak + cp
-            if den < -1e-9:
-                sub[ax] += float(np.clip(0.5 * (cm - cp) / den, -0.5, 0.5))
-    return sub, peak
-
-
 def global_search(
     fixed: sitk.Image,
     moving: sitk.Image,
@@ -237,7 +220,8 @@ def global_search(
         mask = resample_to_grid(fov, fov_grid, t_grid, "nearest", "zeros", 0.0, antialias=False,
                                 matrix=r_matrix)[0]
         ncc = masked_ncc_map(volume, template, mask, fft_dtype=torch.float32, spectra=spectra)
-        sub, score = _subvoxel_peak(ncc)
+        subs, scores = subvoxel_peaks(ncc[None])
+        sub, score = subs[0], float(scores[0])
         shift = s_origin + sub * spacing_mm - t_origin  # axis-aligned grids: index offset * spacing
         to_shifted = np.eye(4)
         to_shifted[:3, 3] = -shift

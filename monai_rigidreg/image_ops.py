@@ -19,6 +19,7 @@ import math
 from collections.abc import Sequence
 from typing import Literal
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -35,6 +36,7 @@ __all__ = [
     "masked_ncc",
     "pyramid",
     "separable_filter",
+    "subvoxel_peaks",
 ]
 
 Padding = Literal["zeros", "replicate", "valid"]
@@ -361,3 +363,28 @@ def masked_ncc(x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor | None = Non
     num = (dx * dy).flatten(1).sum(1)
     den = torch.sqrt((dx * dx).flatten(1).sum(1) * (dy * dy).flatten(1).sum(1) + eps)
     return num / den
+
+
+def subvoxel_peaks(ncc: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """The maximum of each of ``B`` score maps ``[B, X, Y, Z]`` (one per template: the global search's
+    ``masked_ncc_map``, the region check's blocks) refined per axis by the vertex of the parabola through it and its
+    two neighbours (offset clamped to half a sample; none at the map's border or where the three samples are not
+    concave). Returns the refined indices ``[B, 3]`` (float64, index units of the map) and the maxima ``[B]``
+    (float64), as numpy."""
+    b, shape = ncc.shape[0], tuple(ncc.shape[1:])
+    arg = ncc.reshape(b, -1).argmax(1)  # the first maximum of each map
+    idx = torch.stack(torch.unravel_index(arg, shape), 1)  # [B, 3]
+    rows = torch.arange(b, device=ncc.device)
+    peak = ncc[rows, idx[:, 0], idx[:, 1], idx[:, 2]].double()
+    sub = idx.double()
+    for ax in range(3):
+        lo, hi = idx.clone(), idx.clone()
+        lo[:, ax] = (idx[:, ax] - 1).clamp(0, shape[ax] - 1)
+        hi[:, ax] = (idx[:, ax] + 1).clamp(0, shape[ax] - 1)
+        cm = ncc[rows, lo[:, 0], lo[:, 1], lo[:, 2]].double()
+        cp = ncc[rows, hi[:, 0], hi[:, 1], hi[:, 2]].double()
+        den = cm - 2.0 * peak + cp
+        use = (idx[:, ax] > 0) & (idx[:, ax] < shape[ax] - 1) & (den < -1e-9)
+        off = (0.5 * (cm - cp) / torch.where(use, den, torch.full_like(den, -1.0))).clamp(-0.5, 0.5)
+        sub[:, ax] += torch.where(use, off, torch.zeros_like(off))
+    return sub.cpu().numpy(), peak.cpu().numpy()

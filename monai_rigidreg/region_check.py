@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from monai_rigidreg.geometry import Grid, transform_points
+from monai_rigidreg.image_ops import subvoxel_peaks
 
 __all__ = ["REGION_SHIFT_LIMIT_MM", "MIN_BLOCKS", "BlockShifts", "region_bounds", "block_shifts"]
 
@@ -103,14 +104,6 @@ def _sample(image: sitk.Image, grid: Grid, fixed_to_image: np.ndarray, interpola
     tf.SetTranslation(np.asarray(fixed_to_image[:3, 3], dtype=np.float64).tolist())
     out = sitk.Resample(image, grid.to_sitk(), tf, interpolator, default, sitk.sitkFloat32)
     return torch.from_numpy(sitk.GetArrayFromImage(out)).permute(2, 1, 0).contiguous()
-
-
-def _parabola_offset(ym: torch.Tensor, y0: torch.Tensor, yp: torch.Tensor) -> torch.Tensor:
-    """Sub-sample offset (in [-0.5, 0.5]) of the vertex of the parabola through three samples (0 where flat)."""
-    den = ym - 2.0 * y0 + yp
-    off = torch.where(den < 0, 0.5 * (ym - yp) / torch.where(den < 0, den, torch.ones_like(den)),
-                      torch.zeros_like(den))
-    return off.clamp(-0.5, 0.5)
 
 
 def block_shifts(
@@ -191,25 +184,10 @@ def block_shifts(
     var_s = (F.avg_pool3d(s * s, b, stride=1)[0] - mean_s**2)
     # windows without contrast (air, a flat plateau) give no peak: NCC -1 there (20 HU standard deviation)
     ncc = torch.where(var_s > 400.0, num / (n * var_s.clamp_min(1e-6).sqrt()), torch.full_like(var_s, -1.0))
-    flat = ncc.flatten(1)
-    peak, arg = flat.max(1)
-    side = 2 * r + 1
-    idx = torch.stack([arg // (side * side), (arg // side) % side, arg % side], 1)  # [B, 3]
-    shifts = idx.to(torch.float64)
-    for a in range(3):
-        inner = (idx[:, a] > 0) & (idx[:, a] < side - 1)
-        im, ip = idx.clone(), idx.clone()
-        im[:, a] = (idx[:, a] - 1).clamp(0, side - 1)
-        ip[:, a] = (idx[:, a] + 1).clamp(0, side - 1)
-        rows = torch.arange(t.shape[0])
-        ym = ncc[rows, im[:, 0], im[:, 1], im[:, 2]]
-        yp = ncc[rows, ip[:, 0], ip[:, 1], ip[:, 2]]
-        off = _parabola_offset(ym.double(), peak.double(), yp.double())
-        shifts[:, a] += torch.where(inner, off, torch.zeros_like(off))
-    shifts = (shifts - r) * spacing_mm
+    sub, peak_np = subvoxel_peaks(ncc)  # the best shift per block, sub-voxel (a parabola per axis)
+    shifts = (sub - r) * spacing_mm
     contrast_np = contrast.double().numpy()
-    peak_np = peak.double().numpy()
     used = (contrast_np >= min_contrast_hu) & (peak_np >= min_peak) & np.array(in_region) & np.array(in_fov)
     # the block centres on the sampling grid (the snapped corners)
     snapped = g_lo + (corner + (b - 1) / 2.0) * spacing_mm
-    return BlockShifts(snapped, shifts.numpy(), peak_np, contrast_np, used)
+    return BlockShifts(snapped, shifts, peak_np, contrast_np, used)
