@@ -169,14 +169,14 @@ def confidence_score(
 
     Each signal maps through a logistic to [0, 1]; the score is the smallest, so any failure mode flags.
     """
-    s_gain = 1.0 / (1.0 + np.exp((local_gain - gain_ref) / 0.003)) if np.isfinite(local_gain) else 0.0
-    s_swap = 1.0 / (1.0 + np.exp((swap_tre_mm - tre_ref_mm) / 0.75)) if np.isfinite(swap_tre_mm) else 1.0
-    if not swap_counted:
-        s_swap = 1.0
-    s_air = 1.0 / (1.0 + np.exp((tissue_on_air_share - air_ref) / 0.008)) if np.isfinite(tissue_on_air_share) \
-        else 1.0
-    s_region = 1.0 / (1.0 + np.exp((region_shift_mm - region_ref_mm) / 0.25)) if np.isfinite(region_shift_mm) \
-        else 1.0
+    def falling(value: float, ref: float, width: float, unmeasured: float) -> float:
+        """1 well below ``ref``, 0.5 at it, 0 well above (``width``: the logistic's scale); ``unmeasured`` for NaN."""
+        return 1.0 / (1.0 + np.exp((value - ref) / width)) if np.isfinite(value) else unmeasured
+
+    s_gain = falling(local_gain, gain_ref, 0.003, 0.0)
+    s_swap = falling(swap_tre_mm, tre_ref_mm, 0.75, 1.0) if swap_counted else 1.0
+    s_air = falling(tissue_on_air_share, air_ref, 0.008, 1.0)
+    s_region = falling(region_shift_mm, region_ref_mm, 0.25, 1.0)
     return float(min(s_gain, s_swap, s_air, s_region))
 
 
