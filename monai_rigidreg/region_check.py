@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 
 from monai_rigidreg.geometry import Grid, transform_points
+from monai_rigidreg.grid_sampling import sitk_on_grid
 from monai_rigidreg.image_ops import subvoxel_peaks
 
 __all__ = ["REGION_SHIFT_LIMIT_MM", "MIN_BLOCKS", "BlockShifts", "region_bounds", "block_shifts"]
@@ -96,16 +97,6 @@ def region_bounds(region: sitk.Image) -> tuple[np.ndarray, np.ndarray] | None:
     return pts.min(0), pts.max(0)
 
 
-def _sample(image: sitk.Image, grid: Grid, fixed_to_image: np.ndarray, interpolator: int, default: float
-            ) -> torch.Tensor:
-    """``image`` at ``fixed_to_image(x)`` for the voxel centres ``x`` of ``grid``: ``[x, y, z]`` float32."""
-    tf = sitk.AffineTransform(3)
-    tf.SetMatrix(np.asarray(fixed_to_image[:3, :3], dtype=np.float64).ravel().tolist())
-    tf.SetTranslation(np.asarray(fixed_to_image[:3, 3], dtype=np.float64).tolist())
-    out = sitk.Resample(image, grid.to_sitk(), tf, interpolator, default, sitk.sitkFloat32)
-    return torch.from_numpy(sitk.GetArrayFromImage(out)).permute(2, 1, 0).contiguous()
-
-
 def block_shifts(
     fixed: sitk.Image,
     moving: sitk.Image,
@@ -160,12 +151,15 @@ def block_shifts(
     g_lo = centers.min(0) - half - r * spacing_mm
     size = np.ceil((centers.max(0) + half + r * spacing_mm - g_lo) / spacing_mm).astype(int) + 1
     grid = Grid(tuple(int(s) for s in size), (spacing_mm,) * 3, tuple(g_lo))
-    f = _sample(fixed, grid, np.eye(4), sitk.sitkLinear, hu_window[0])  # resampled to float32 (no copy first)
-    m = _sample(moving, grid, fixed_to_moving, sitk.sitkLinear, hu_window[0])
+    # both images on the grid through grid_sampling (the one resampling path; plain trilinear, no anti-aliasing:
+    # the blocks are compared at the CBCT's own 2 mm)
+    f = sitk_on_grid(fixed, grid, "bilinear", hu_window[0], antialias=False)[0]
+    m = sitk_on_grid(moving, grid, "bilinear", hu_window[0], antialias=False, matrix=fixed_to_moving)[0]
     f, m = f.clamp(*hu_window), m.clamp(*hu_window)
-    reg = _sample(region, grid, np.eye(4), sitk.sitkNearestNeighbor, 0.0) > 0.5
-    fov = None if moving_fov is None else _sample(
-        moving_fov, grid, fixed_to_moving, sitk.sitkNearestNeighbor, 0.0) > 0.5
+    reg = sitk_on_grid(region, grid, "nearest", 0.0)[0] > 0.5
+    fov = None
+    if moving_fov is not None:
+        fov = sitk_on_grid(moving_fov, grid, "nearest", 0.0, matrix=fixed_to_moving)[0] > 0.5
     corner = np.round((centers - half - g_lo) / spacing_mm).astype(int)  # block start (index) per block
     templates, windows, in_region, in_fov = [], [], [], []
     for i, j, k in corner:
