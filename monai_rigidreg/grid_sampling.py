@@ -81,7 +81,9 @@ def resample_physical(
             shift = x.amin(dim=(1, 2, 3), keepdim=True)
         else:
             shift = float(padding_value)
-        x = x - shift
+        # into a new C-contiguous tensor: the subtraction on a transposed view (sitk_tensor) would keep its strides
+        # and grid_sample would copy it once more
+        x = torch.sub(x, shift, out=torch.empty(x.shape, dtype=cdtype, device=x.device))
         padding_mode = "zeros"
     m = torch.as_tensor(np.asarray(matrix, dtype=np.float64), dtype=torch.float64, device=x.device).unsqueeze(0)
     out = warp_volume(x.unsqueeze(0), m, out_grid, in_grid, mode=mode, padding_mode=padding_mode)[0]

@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from monai_rigidreg.geometry import Grid, normalized_theta, params_to_matrix_torch
 
-__all__ = ["warp_volume", "warp_volume_params"]
+__all__ = ["warp_volume", "warp_volume_many", "warp_volume_params"]
 
 MODES = ("bilinear", "nearest")
 PADDING_MODES = ("zeros", "border", "reflection")
@@ -59,6 +59,37 @@ def warp_volume(
     out_size = tuple(fixed_grid.size) if array_order == "xyz" else tuple(fixed_grid.size)[::-1]
     sample_at = F.affine_grid(theta[:, :3], [moving.shape[0], moving.shape[1], *out_size], align_corners=True)
     return F.grid_sample(moving.contiguous(), sample_at, mode=mode, padding_mode=padding_mode, align_corners=True)
+
+
+def warp_volume_many(
+    moving: torch.Tensor,
+    matrices: torch.Tensor,
+    fixed_grid: Grid,
+    moving_grid: Grid,
+    mode: str = "bilinear",
+    padding_mode: str = "zeros",
+) -> torch.Tensor:
+    """One volume under ``K`` transforms: ``[1, C, x, y, z]`` (``xyz`` layout on ``moving_grid``) and ``[K, 4, 4]``
+    fixed -> moving matrices (LPS mm) -> ``[K, C, *fixed_grid.size]``, as :func:`warp_volume` of ``K`` copies.
+
+    The ``K`` sampling grids are stacked along the first output axis of a single ``grid_sample`` call, so the volume
+    is read in place instead of being copied ``K`` times (a batch of ``expand``-ed copies is made contiguous by
+    ``grid_sample``: 0.27 s for the global search's 27 rotations of a 128^3 CBCT and its field of view).
+    """
+    if moving.ndim != 5 or moving.shape[0] != 1:
+        raise ValueError(f"moving must be one volume [1, C, x, y, z], got shape {tuple(moving.shape)}")
+    if tuple(moving.shape[2:]) != tuple(moving_grid.size):
+        raise ValueError(f"moving spatial shape {tuple(moving.shape[2:])} does not match its grid {moving_grid.size}")
+    if mode not in MODES or padding_mode not in PADDING_MODES:
+        raise ValueError(f"mode must be one of {MODES} and padding_mode one of {PADDING_MODES}, got {mode!r}, "
+                         f"{padding_mode!r}")
+    k, c = matrices.shape[0], moving.shape[1]
+    size = tuple(fixed_grid.size)
+    theta = normalized_theta(matrices.to(torch.float64), fixed_grid, moving_grid, "xyz").to(moving.dtype)
+    sample_at = F.affine_grid(theta[:, :3], [k, c, *size], align_corners=True)  # [K, x, y, z, 3]
+    out = F.grid_sample(moving.contiguous(), sample_at.reshape(1, k * size[0], *size[1:], 3), mode=mode,
+                        padding_mode=padding_mode, align_corners=True)  # [1, C, K * x, y, z]
+    return out.reshape(c, k, *size).transpose(0, 1)
 
 
 def warp_volume_params(

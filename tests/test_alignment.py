@@ -53,6 +53,21 @@ def test_jacobian_matches_finite_differences_of_warp_on_oblique_grid():
     assert (jac - ref)[inner].abs().max() < 1e-3 * ref[inner].abs().max()
 
 
+def test_jacobian_is_the_gradient_times_the_parameter_flow():
+    # the ramp form of fixed_jacobian equals the chain rule through the [6, 3, N] flow it no longer builds
+    direction = rotation_matrix(*np.deg2rad([-25.0, 5.0, 40.0])).ravel()
+    grid = Grid((14, 11, 9), (1.2, 2.5, 1.7), (-30.0, 12.0, 80.0), tuple(direction))
+    fixed = torch.rand(2, 3, *grid.size, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    g_idx = torch.gradient(fixed, dim=(2, 3, 4))
+    inv_t = np.linalg.inv(grid.index_to_physical()[:3, :3]).T
+    g_phys = [sum(float(inv_t[a, i]) * g_idx[i] for i in range(3)) for a in range(3)]
+    flow = parameter_flow(grid)
+    ref = torch.stack([sum(g_phys[a] * flow[k, a] for a in range(3)) for k in range(6)], 1)
+    jac = fixed_jacobian(fixed, grid)
+    assert jac.shape == (2, 6, 3, *grid.size)
+    torch.testing.assert_close(jac, ref, rtol=1e-9, atol=1e-9)
+
+
 def test_parameter_flow_translation_and_rotation_units():
     grid = Grid.centered((5, 5, 5), (2.0, 2.0, 2.0), (10.0, 0.0, 0.0))
     flow = parameter_flow(grid)

@@ -12,7 +12,13 @@ from conftest import synth_ct
 from monai_rigidreg.confidence import cylindrical_fov_mask
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import Grid, matrix_to_sitk, params_to_matrix, recenter_params, target_registration_error
-from monai_rigidreg.global_init import DEFAULT_ROTATIONS_DEG, global_search, masked_ncc_map, matrix_distance_mm
+from monai_rigidreg.global_init import (
+    DEFAULT_ROTATIONS_DEG,
+    global_search,
+    masked_ncc_map,
+    masked_ncc_maps,
+    matrix_distance_mm,
+)
 from monai_rigidreg.match_region import match_weight, parse_roi
 from monai_rigidreg.region_check import MIN_BLOCKS, block_shifts
 from monai_rigidreg.registration import RigidRegistrar
@@ -61,6 +67,23 @@ def _brute_ncc(volume, template, mask, shift):
     a, b = win[m].double(), template[m].double()
     a, b = a - a.mean(), b - b.mean()
     return float((a * b).sum() / torch.sqrt((a * a).sum() * (b * b).sum()))
+
+
+def test_batched_ncc_maps_are_each_templates_own_map():
+    # the global search's batch: every map as the template gets it alone, a template without mask is -1 everywhere
+    g = torch.Generator().manual_seed(5)
+    volume = torch.randn(20, 18, 16, generator=g)
+    templates = torch.randn(3, 8, 7, 6, generator=g)
+    masks = (torch.rand(3, 8, 7, 6, generator=g) > 0.3).float()
+    masks[2] = 0.0
+    masks[2, 0, 0, :5] = 1.0  # five voxels: fewer than 10
+    templates[1] = volume[2:10, 5:12, 7:13]
+    maps = masked_ncc_maps(volume, templates, masks)
+    assert tuple(maps.shape) == (3, 13, 12, 11)
+    for k in range(3):
+        assert torch.equal(maps[k], masked_ncc_map(volume, templates[k], masks[k]))
+    assert tuple(np.unravel_index(int(maps[1].argmax()), maps[1].shape)) == (2, 5, 7)
+    assert bool((maps[2] == -1.0).all())
 
 
 def test_masked_ncc_map_is_the_ncc_at_every_shift():

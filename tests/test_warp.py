@@ -11,7 +11,7 @@ from conftest import oblique_direction, smooth_random_image
 
 from monai_rigidreg.geometry import Grid, params_to_matrix, params_to_sitk
 from monai_rigidreg.io import metatensor_to_sitk, sitk_to_metatensor
-from monai_rigidreg.warp import warp_volume, warp_volume_params
+from monai_rigidreg.warp import warp_volume, warp_volume_many, warp_volume_params
 
 
 @pytest.fixture(scope="module")
@@ -103,3 +103,18 @@ def test_warp_is_monai_affine_transform(moving_image, mode, padding_mode):
     assert torch.equal(got, ref)
     with pytest.raises(ValueError, match="mode"):
         warp_volume(vol, matrix, FIXED, moving_grid, mode="bicubic")
+
+
+@pytest.mark.parametrize("mode", ["bilinear", "nearest"])
+def test_one_volume_under_many_transforms_is_each_warp(moving_image, mode):
+    """warp_volume_many: the K transforms' outputs are those of warp_volume one by one, in order (oblique grids)."""
+    vol = torch.from_numpy(sitk.GetArrayFromImage(moving_image)).permute(2, 1, 0)[None, None]  # a transposed view
+    vol = torch.cat([vol, 2.0 * vol + 1.0], 1)  # two channels
+    mats = torch.tensor(np.stack([params_to_matrix(p, FIXED.center()) for p in
+                                  ([0, 0, 0, 0, 0, 0], [2, -3, 1.5, 5, -4, 7], [-4, 1, 0, 0, 12, -3])]))
+    out = warp_volume_many(vol, mats, FIXED, Grid.from_sitk(moving_image), mode=mode)
+    assert tuple(out.shape) == (3, 2, *FIXED.size)
+    for k in range(3):
+        torch.testing.assert_close(out[k], warp_volume(vol, mats[k:k + 1], FIXED, Grid.from_sitk(moving_image),
+                                                        mode=mode)[0], rtol=0, atol=1e-5)
+    assert not torch.allclose(out[0], out[1])

@@ -76,15 +76,56 @@ def fixed_jacobian(fixed: torch.Tensor, grid: Grid) -> torch.Tensor:
 
     Chain rule: the physical image gradient (central differences along the array axes, mapped through the
     grid's index-to-physical matrix) times :func:`parameter_flow`. ``fixed`` is in MONAI ``xyz`` layout on ``grid``.
+
+    The flow is affine in the voxel index, ``flow_k(u) = K_k u + b_k`` with ``u`` the index about the grid centre, so
+    ``J_k = sum_i (K_k^T A^-1 g)_i u_i + (b_k^T A^-1 g)`` is formed from the three index gradients ``g`` and three
+    broadcast index ramps, never the ``[6, 3, N]`` flow itself (:func:`_flow_coefficients`; on the last level's
+    ~1M-voxel grid, which changes with every case, building the flow took 0.39 s: ``benchmarks/bench_speed.py``).
     """
     if tuple(fixed.shape[2:]) != tuple(grid.size):
         raise ValueError(f"fixed spatial shape {tuple(fixed.shape[2:])} does not match its grid {grid.size}")
     g_idx = torch.gradient(fixed, dim=(2, 3, 4))  # 3 x [B, C, x, y, z] per index step
-    inv_t = np.linalg.inv(grid.index_to_physical()[:3, :3]).T  # d/d(physical) = A^-T d/d(index)
-    g_phys = [sum(float(inv_t[a, i]) * g_idx[i] for i in range(3) if inv_t[a, i] != 0.0) for a in range(3)]
-    flow = parameter_flow(grid, fixed.dtype, fixed.device)  # [6, 3, x, y, z]
-    # elementwise products (an einsum here becomes slow batched matmuls on CPU)
-    return torch.stack([sum(g_phys[a] * flow[k, a] for a in range(3)) for k in range(6)], 1)
+    slope, offset = _flow_coefficients(grid)  # [6, 3 (index axis), 3 (gradient axis)], [6, 3 (gradient axis)]
+    ramps = [(torch.arange(n, dtype=fixed.dtype, device=fixed.device) - (n - 1) / 2.0).view(
+        [n if a == i else 1 for a in range(3)]) for i, n in enumerate(grid.size)]
+
+    def combine(coefs: np.ndarray) -> torch.Tensor | None:
+        terms = [float(c) * g for c, g in zip(coefs, g_idx) if c != 0.0]
+        return sum(terms[1:], terms[0]) if terms else None
+
+    out = []
+    for k in range(6):
+        jac = combine(offset[k])
+        for i in range(3):
+            part = combine(slope[k, i])
+            if part is not None:
+                jac = part * ramps[i] if jac is None else jac + part * ramps[i]
+        out.append(torch.zeros_like(fixed) if jac is None else jac)
+    return torch.stack(out, 1)
+
+
+@functools.lru_cache(maxsize=64)
+def _flow_coefficients(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """The coefficients of :func:`fixed_jacobian` for ``grid``: ``slope[k, i, m]`` and ``offset[k, m]`` such that
+    ``J_k = sum_m (sum_i slope[k, i, m] u_i + offset[k, m]) dI/du_m`` with ``u`` the voxel index about the grid
+    centre and ``dI/du_m`` the image gradient per index step along array axis ``m``.
+
+    From the same central differences of :func:`~monai_rigidreg.geometry.params_to_matrix_torch` as
+    :func:`parameter_flow`: ``flow_k(p) = D_k (p - c) + d_k`` (physical, mm), ``p - c = A u`` with ``A`` the grid's
+    direction times spacing, and the physical gradient ``A^-T dI/du``."""
+    h = 1e-3
+    eye = torch.eye(6, dtype=torch.float64)
+    center = grid.center()
+    mats = params_to_matrix_torch(torch.cat([eye * h, -eye * h], 0), center).numpy()  # [12, 4, 4]
+    deriv = (mats[:6] - mats[6:])[:, :3, :] / (2 * h)  # [6, 3, 4]
+    lin = deriv[:, :, :3]  # D_k
+    const = lin @ center + deriv[:, :, 3]  # d_k = flow at the centre
+    a = grid.index_to_physical()[:3, :3]
+    a_inv = np.linalg.inv(a)
+    # flow . A^-T g = (A^-1 flow) . g: per index axis i the coefficients of g of the term in u_i
+    slope = np.einsum("mp,kpq,qi->kim", a_inv, lin, a)  # [6, i, m]
+    offset = np.einsum("mp,kp->km", a_inv, const)  # [6, m]
+    return slope, offset
 
 
 def gauss_newton_align(
