@@ -44,8 +44,8 @@ from monai_rigidreg.grid_sampling import (
 from monai_rigidreg.image_ops import subvoxel_peaks
 from monai_rigidreg.warp import warp_volume_many
 
-__all__ = ["SearchCandidate", "global_search", "masked_ncc_map", "masked_ncc_maps", "volume_spectra", "DEFAULT_ROTATIONS_DEG",
-           "matrix_distance_mm", "fov_similarity", "SEARCH_AGREE_MM"]
+__all__ = ["SearchCandidate", "global_search", "masked_ncc_map", "masked_ncc_maps", "volume_spectra",
+           "DEFAULT_ROTATIONS_DEG", "matrix_distance_mm", "fov_similarity", "SEARCH_AGREE_MM"]
 
 def _rotation_candidates(step: float = 25.0) -> tuple[tuple[float, float, float], ...]:
     """The identity, +-``step`` about each axis, about each pair of axes and about all three (27 candidates)."""
