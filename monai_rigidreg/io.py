@@ -11,7 +11,6 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-import nibabel as nib
 import numpy as np
 import SimpleITK as sitk
 import torch
@@ -210,7 +209,11 @@ def load_volume(
 
 
 def _check_nifti_finite(path: Path) -> None:
-    """ITK's NIfTI reader silently replaces NaN by 0: look at the stored floats with nibabel instead."""
+    """ITK's NIfTI reader silently replaces NaN by 0: look at the stored floats with nibabel instead.
+
+    nibabel (which imports pydicom, 0.11 s in all) is imported here, in the reading thread, while SimpleITK reads."""
+    import nibabel as nib
+
     try:
         img = nib.load(str(path))
     except Exception:  # noqa: BLE001 - SimpleITK could read it; nibabel's opinion is only a second check

@@ -15,9 +15,10 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from monai_rigidreg.geometry import Grid
 from monai_rigidreg.io import check_output_path, resample
 
-__all__ = ["qc_figure", "orthogonal_slices", "edge_letters"]
+__all__ = ["qc_figure", "orthogonal_slices", "resampled_slices", "edge_letters"]
 
 _LETTERS = (("R", "L"), ("A", "P"), ("I", "S"))
 """(negative, positive) end of each LPS axis: -x is patient right, +x left; -y anterior, +y posterior; -z inferior,
@@ -49,12 +50,34 @@ def edge_letters(image: sitk.Image) -> list[dict[str, str]]:
 
 def orthogonal_slices(image: sitk.Image, center_index: tuple[int, int, int] | None = None) -> list[np.ndarray]:
     """Axial, coronal and sagittal 2D slices (display orientation: anterior/superior up) of a 3D image."""
-    arr = sitk.GetArrayFromImage(image)  # [z, y, x]
+    arr = sitk.GetArrayViewFromImage(image)  # [z, y, x], no copy of the volume (the slices below are copied)
     z, y, x = (s // 2 for s in arr.shape) if center_index is None else center_index[::-1]
-    axial = arr[z]  # rows y (posterior grows downwards), columns x
-    coronal = np.flipud(arr[:, y, :])  # rows z, superior up
-    sagittal = np.flipud(arr[:, :, x])  # rows z, columns y
+    axial = arr[z].copy()  # rows y (posterior grows downwards), columns x
+    coronal = np.flipud(arr[:, y, :]).copy()  # rows z, superior up
+    sagittal = np.flipud(arr[:, :, x]).copy()  # rows z, columns y
     return [axial, coronal, sagittal]
+
+
+def resampled_slices(moving: sitk.Image, fixed: sitk.Image, transform: sitk.Transform | None,
+                     center_index: tuple[int, int, int] | None = None, interpolator: str = "linear",
+                     default_value: float | None = None) -> list[np.ndarray]:
+    """:func:`orthogonal_slices` of ``moving`` resampled onto ``fixed``'s grid under ``transform`` (fixed -> moving;
+    identity if ``None``), computed on the three slices only: each is a one-voxel-thick grid cut out of ``fixed``'s
+    (same spacing and direction, its origin at the slice's first voxel), so the values are those of the whole
+    resampled volume at those voxels (:func:`~monai_rigidreg.io.resample`) without resampling the other ~99 %."""
+    size = fixed.GetSize()
+    x, y, z = (s // 2 for s in size) if center_index is None else center_index
+    if default_value is None:
+        stats = sitk.MinimumMaximumImageFilter()
+        stats.Execute(moving)
+        default_value = stats.GetMinimum()
+    out = []
+    for start, extent in (((0, 0, z), (size[0], size[1], 1)), ((0, y, 0), (size[0], 1, size[2])),
+                          ((x, 0, 0), (1, size[1], size[2]))):
+        grid = Grid(extent, fixed.GetSpacing(), fixed.TransformIndexToPhysicalPoint(start), fixed.GetDirection())
+        out.append(sitk.GetArrayFromImage(resample(moving, grid, transform, interpolator, default_value)))
+    # the same orientation as orthogonal_slices: axial rows y, columns x; coronal and sagittal superior up
+    return [out[0][0], np.flipud(out[1][:, 0, :]), np.flipud(out[2][:, :, 0])]
 
 
 def _window(img: np.ndarray, lo: float, hi: float) -> np.ndarray:
@@ -94,10 +117,9 @@ def qc_figure(
     import matplotlib.pyplot as plt
 
     p = check_output_path(path, overwrite)
-    before = resample(moving, fixed, None)
-    vols = [before, registered, fixed]
     arr_f = sitk.GetArrayViewFromImage(fixed)
-    lo, hi = window if window is not None else (float(v) for v in np.percentile(arr_f, [1, 99]))
+    # the window from every 8th voxel (2 per axis): the percentiles of a 256^3 CT to within a few HU, in 1/8 the time
+    lo, hi = window if window is not None else (float(v) for v in np.percentile(arr_f[::2, ::2, ::2], [1, 99]))
     center_index, fov = None, None
     if transform is not None:
         # the CBCT centre c_m sits at T^-1(c_m) in the fixed frame once registered
@@ -107,8 +129,10 @@ def qc_figure(
         center_index = tuple(int(np.clip(i, 0, n - 1)) for i, n in zip(idx, fixed.GetSize()))
         ones = sitk.Image(moving.GetSize(), sitk.sitkUInt8) + 1
         ones.CopyInformation(moving)
-        fov = orthogonal_slices(sitk.Resample(ones, fixed, transform, sitk.sitkNearestNeighbor, 0), center_index)
-    slices = [orthogonal_slices(v, center_index) for v in vols]
+        fov = resampled_slices(ones, fixed, transform, center_index, "nearest", 0)
+    # "before": the CBCT on the CT grid with the identity, on the three slices only
+    slices = [resampled_slices(moving, fixed, None, center_index), orthogonal_slices(registered, center_index),
+              orthogonal_slices(fixed, center_index)]
     letters = edge_letters(fixed)
     spacing = fixed.GetSpacing()
     aspects = [spacing[1] / spacing[0], spacing[2] / spacing[0], spacing[2] / spacing[1]]

@@ -8,13 +8,13 @@ import json
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from conftest import smooth_random_image
+from conftest import oblique_direction, smooth_random_image
 
 from monai_rigidreg.classical import elastix_available, register_elastix, register_sitk
 from monai_rigidreg.evaluation import CaseResult, format_report, motion_conditions, summarize, write_report
 from monai_rigidreg.geometry import Grid, grid_points, params_to_sitk, target_registration_error
 from monai_rigidreg.io import resample
-from monai_rigidreg.qc import edge_letters, qc_figure
+from monai_rigidreg.qc import edge_letters, orthogonal_slices, qc_figure, resampled_slices
 
 TRUE = [6.0, -4.0, 3.0, 5.0, -3.0, 8.0]
 
@@ -99,6 +99,24 @@ def test_qc_figure_writes_png_and_refuses_overwrite(tmp_path, pair):
     assert img.GetSize()[0] > 800
     with pytest.raises(FileExistsError):
         qc_figure(fixed, moving, registered, p)
+
+
+@pytest.mark.parametrize("interpolator", ["linear", "nearest"])
+def test_qc_slices_are_those_of_the_whole_resampled_volume(interpolator):
+    """The QC figure resamples the three displayed slices only: on an oblique, anisotropic CT grid and a rotated
+    CBCT the values equal the whole volume's resampling sliced (a slice off by one voxel or transposed differs)."""
+    fixed = smooth_random_image((30, 26, 18), (1.1, 1.3, 2.2), (-15.0, -12.0, -20.0), oblique_direction(8, -6, 14),
+                                seed=2)
+    moving = smooth_random_image((24, 24, 20), (1.5, 1.5, 1.5), (-17.0, -16.0, -14.0), oblique_direction(0, 5, -9),
+                                 seed=3)
+    tfm = params_to_sitk([2.0, -1.5, 3.0, 4.0, -3.0, 6.0], Grid.from_sitk(fixed).center())
+    for transform, center in ((tfm, (11, 9, 7)), (None, None)):
+        whole = orthogonal_slices(resample(moving, fixed, transform, interpolator, -5.0), center)
+        parts = resampled_slices(moving, fixed, transform, center, interpolator, -5.0)
+        for a, b in zip(whole, parts):
+            assert a.shape == b.shape
+            np.testing.assert_allclose(b, a, rtol=0, atol=1e-5)
+        assert np.ptp(parts[2]) > 0.1  # real image content, not padding alone
 
 
 def test_qc_orientation_letters_follow_the_direction_cosines():
