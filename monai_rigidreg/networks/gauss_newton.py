@@ -24,7 +24,13 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from monai_rigidreg.geometry import Grid, grid_points, matrix_to_params_torch, params_to_matrix_torch
+from monai_rigidreg.geometry import (
+    Grid,
+    grid_points,
+    matrix_to_params_torch,
+    params_to_matrix,
+    params_to_matrix_torch,
+)
 from monai_rigidreg.image_ops import erode, gradient_magnitude, local_mean, pyramid
 from monai_rigidreg.warp import warp_volume
 
@@ -110,13 +116,15 @@ def _flow_coefficients(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     ``J_k = sum_m (sum_i slope[k, i, m] u_i + offset[k, m]) dI/du_m`` with ``u`` the voxel index about the grid
     centre and ``dI/du_m`` the image gradient per index step along array axis ``m``.
 
-    From the same central differences of :func:`~monai_rigidreg.geometry.params_to_matrix_torch` as
-    :func:`parameter_flow`: ``flow_k(p) = D_k (p - c) + d_k`` (physical, mm), ``p - c = A u`` with ``A`` the grid's
-    direction times spacing, and the physical gradient ``A^-T dI/du``."""
+    From central differences of :func:`~monai_rigidreg.geometry.params_to_matrix` (the numpy twin of the
+    :func:`~monai_rigidreg.geometry.params_to_matrix_torch` that :func:`parameter_flow` differentiates):
+    ``flow_k(p) = D_k (p - c) + d_k`` (physical, mm), ``p - c = A u`` with ``A`` the grid's direction times spacing,
+    and the physical gradient ``A^-T dI/du``."""
     h = 1e-3
-    eye = torch.eye(6, dtype=torch.float64)
     center = grid.center()
-    mats = params_to_matrix_torch(torch.cat([eye * h, -eye * h], 0), center).numpy()  # [12, 4, 4]
+    # numpy, not torch: under torch.jit.trace a cached result must not have recorded traced operations (the cache
+    # would make a second trace differ from the first)
+    mats = np.stack([params_to_matrix(sign * h * row, center) for sign in (1.0, -1.0) for row in np.eye(6)])
     deriv = (mats[:6] - mats[6:])[:, :3, :] / (2 * h)  # [6, 3, 4]
     lin = deriv[:, :, :3]  # D_k
     const = lin @ center + deriv[:, :, 3]  # d_k = flow at the centre
