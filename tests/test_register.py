@@ -378,6 +378,58 @@ def test_starts_run_in_one_batch_give_each_starts_own_estimate(fast_pair, shippe
     assert np.abs(batched[1].residual - batched[2].residual).max() > 1.0
 
 
+def _fake_search(matrices):
+    """A global_search stand-in returning these fixed -> moving candidates, best first."""
+    from monai_rigidreg.global_init import SearchCandidate
+
+    def search(*args, **kwargs):
+        return [SearchCandidate(np.asarray(m), 0.9 - 0.01 * k, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+                for k, m in enumerate(matrices)]
+
+    return search
+
+
+def test_further_search_starts_run_only_where_the_best_one_leads_elsewhere(fast_pair, shipped_registrar,
+                                                                           monkeypatch):
+    """The search's best candidate 12 mm from the identity's estimate (beyond SEARCH_AGREE_MM): the network from
+    it comes back to the same pose, so the next candidates are not run; where the best candidate's run ends 20 mm
+    away (its estimate moved, as a wrong basin would leave it), the other three run too and the right pose wins."""
+    import dataclasses
+
+    import monai_rigidreg.registration as reg_mod
+
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    alone = shipped_registrar(fixed, moving, resample_moving=False, global_init=False, assess=False)
+    c = Grid.from_sitk(moving).center()
+    near = alone.matrix @ params_to_matrix([12.0, 0.0, 0.0, 0.0, 0.0, 0.0], c)
+    monkeypatch.setattr(reg_mod, "global_search", _fake_search([near, near, near, near]))
+    res = shipped_registrar(fixed, moving, resample_moving=False, assess=False)
+    search = res.details["global_search"]
+    assert search["distance_to_identity_start_mm"] > reg_mod.SEARCH_AGREE_MM
+    assert search["best_start_to_identity_estimate_mm"] < reg_mod.SAME_POSE_MM
+    assert search["starts_run"] == 1 and len(search["search_start_ncc"]) == 1
+    assert _fast_pair_tre(fast_pair, res) < 2.0
+
+    real = shipped_registrar._runs_from
+    calls = []
+
+    def first_run_elsewhere(fixed_img, moving_img, starts, *args, **kwargs):
+        runs = real(fixed_img, moving_img, starts, *args, **kwargs)
+        calls.append(len(starts))
+        if len(calls) == 2:  # the identity's run, then the best candidate's
+            runs[0] = dataclasses.replace(runs[0], total=runs[0].total @ params_to_matrix([20.0, 0, 0, 0, 0, 0], c))
+        return runs
+
+    monkeypatch.setattr(shipped_registrar, "_runs_from", first_run_elsewhere)
+    res = shipped_registrar(fixed, moving, resample_moving=False, assess=False)
+    search = res.details["global_search"]
+    assert calls == [1, 1, 3]  # the identity's run, the best candidate's, the other three in one batch
+    assert search["best_start_to_identity_estimate_mm"] > reg_mod.SAME_POSE_MM
+    assert search["starts_run"] == 4 and len(search["search_start_ncc"]) == 4
+    assert search.get("start_rank", 1) != 0  # the moved estimate does not win
+    assert _fast_pair_tre(fast_pair, res) < 2.0
+
+
 def test_a_better_swapped_estimate_replaces_a_wrong_one(fast_pair, shipped_registrar, monkeypatch):
     """The last level is made to return an estimate 12 mm off (once); the swapped-input estimate disagrees, matches
     the images better, and replaces it after its own last level: the result is right again, in the right frame
