@@ -84,6 +84,47 @@ def _window(img: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return np.clip((img - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
 
 
+_DIFF_ANCHORS = np.array([[0.0, 0.0, 0.3], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0], [1.0, 0.0, 0.0], [0.5, 0.0, 0.0]])
+"""The diverging colour map of the difference panels (matplotlib's ``seismic``: dark blue, blue, white, red, dark
+red at -1, -0.5, 0, 0.5, 1), as a 256-entry table."""
+_DIFF_LUT = np.stack([np.interp(np.linspace(0.0, 1.0, 256), np.linspace(0.0, 1.0, 5), _DIFF_ANCHORS[:, c])
+                      for c in range(3)], 1)
+_YELLOW, _PANEL, _GAP, _BAR = (255, 255, 0), 220, 14, 10
+"""Outline and letter colour; the largest panel side, the gap between panels and the colour bar width (pixels)."""
+
+
+def _font(size: int):  # noqa: ANN202 - a PIL font
+    """DejaVu Sans (the font matplotlib ships, found without importing matplotlib) or Pillow's default font."""
+    import importlib.util
+
+    from PIL import ImageFont
+
+    spec = importlib.util.find_spec("matplotlib")
+    for folder in (spec.submodule_search_locations or []) if spec is not None else []:
+        path = Path(folder) / "mpl-data" / "fonts" / "ttf" / "DejaVuSans.ttf"
+        if path.is_file():
+            return ImageFont.truetype(str(path), size)
+    return ImageFont.load_default(size)
+
+
+def _to_rgb(img: np.ndarray, kind: str) -> np.ndarray:
+    """``[h, w]`` (or ``[h, w, 3]`` overlay) display values -> ``[h, w, 3]`` uint8: ``gray`` in [0, 1], ``diff`` in
+    [-1, 1] through :data:`_DIFF_LUT`, ``rgb`` channels in [0, 1]."""
+    if kind == "diff":
+        idx = np.clip(np.rint((img + 1.0) * 127.5), 0, 255).astype(np.intp)
+        return (_DIFF_LUT[idx] * 255.0 + 0.5).astype(np.uint8)
+    rgb = img if kind == "rgb" else np.repeat(img[..., None], 3, -1)
+    return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def _outline(mask: np.ndarray) -> np.ndarray:
+    """Pixels of ``mask`` with a 4-neighbour outside it (the border of the image counts as inside)."""
+    m = mask.astype(bool)
+    pad = np.pad(m, 1, mode="edge")
+    inner = pad[:-2, 1:-1] & pad[2:, 1:-1] & pad[1:-1, :-2] & pad[1:-1, 2:]
+    return m & ~inner
+
+
 def qc_figure(
     fixed: sitk.Image,
     moving: sitk.Image,
@@ -108,13 +149,12 @@ def qc_figure(
         transform: the registration (fixed -> moving); with it the slices pass through the CBCT centre as
             registered and the CBCT's field of view (its grid's extent) is outlined on panels (b), (e) and (f).
         names: display names of the fixed and moving inputs (e.g. file names), shown under the title.
-    """
-    # imported on use: the Agg backend must be chosen before pyplot is first imported, and --no-qc runs do not pay
-    # for matplotlib (about 0.3-0.5 s: python -c "import matplotlib.pyplot")
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Drawn with Pillow (panels, colour bars, the orientation letters and the titles): with matplotlib the figure cost
+    about 1 s of a ``register`` command on 2 cores (0.5 s of imports, 24 axes to build and draw; the difference of
+    ``benchmarks/bench_speed.py``'s command rows with and without ``--no-qc``, 0.4.6).
+    """
+    from PIL import Image, ImageDraw
 
     p = check_output_path(path, overwrite)
     arr_f = sitk.GetArrayViewFromImage(fixed)
@@ -134,55 +174,81 @@ def qc_figure(
     slices = [resampled_slices(moving, fixed, None, center_index), orthogonal_slices(registered, center_index),
               orthogonal_slices(fixed, center_index)]
     letters = edge_letters(fixed)
-    spacing = fixed.GetSpacing()
-    aspects = [spacing[1] / spacing[0], spacing[2] / spacing[0], spacing[2] / spacing[1]]
+    sx, sy, sz = fixed.GetSpacing()
+    # display size of each row's slices: physical proportions, the longer side _PANEL pixels
+    extents = [(slices[2][0].shape[1] * sx, slices[2][0].shape[0] * sy),
+               (slices[2][1].shape[1] * sx, slices[2][1].shape[0] * sz),
+               (slices[2][2].shape[1] * sy, slices[2][2].shape[0] * sz)]
+    sizes = [(max(1, round(_PANEL * w / max(w, h))), max(1, round(_PANEL * h / max(w, h)))) for w, h in extents]
     titles = ["(a) moving (before)", "(b) registered", "(c) fixed", "(d) diff before", "(e) diff after",
               "(f) overlay R=fixed G=reg."]
     views = ["axial", "coronal", "sagittal"]
-    fig, axes = plt.subplots(3, 6, figsize=(18, 9.5))
+    font, small, big = _font(12), _font(9), _font(14)
+    bar_space = _BAR + 34  # the colour bar and its tick labels right of a difference panel
+    col_w = [_PANEL + (bar_space if c in (3, 4) else 0) for c in range(6)]
+    left, top = 26, 22 + (20 if title else 0) + (18 if names else 0)
+    width = left + sum(col_w) + _GAP * 6
+    row_y = [top + sum(sizes[k][1] + _GAP for k in range(r)) for r in range(3)]  # each row as tall as its slices
+    height = row_y[2] + sizes[2][1] + 6
+    canvas = Image.new("RGB", (width, height), "white")
+    draw = ImageDraw.Draw(canvas)
+    subtitle = f"fixed: {names[0]}   moving: {names[1]}" if names else ""
+    y = 4
+    for line, f in ((title, big), (subtitle, font)):
+        if line:
+            draw.text((width / 2, y), line, fill="black", font=f, anchor="ma")
+            y += 20 if f is big else 18
+    xs = [left + sum(col_w[:c]) + _GAP * c for c in range(6)]
+    for c, name in enumerate(titles):
+        draw.text((xs[c] + _PANEL / 2, top - 4), name, fill="black", font=font, anchor="md")
     for r in range(3):
         b, g, f = (_window(s[r], lo, hi) for s in slices)
-        panels = [b, g, f, b - f, g - f, np.stack([f, g, np.zeros_like(f)], -1)]
-        for col, img in enumerate(panels):
-            ax = axes[r, col]
-            if col in (3, 4):
-                im = ax.imshow(img, cmap="seismic", vmin=-1, vmax=1, aspect=aspects[r], interpolation="nearest")
-                bar = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
-                bar.ax.tick_params(labelsize=7)
-                if r == 0:
-                    bar.set_label("difference / display window", fontsize=7)
-            elif col == 5:
-                ax.imshow(img, aspect=aspects[r], interpolation="nearest")
-            else:
-                ax.imshow(img, cmap="gray", vmin=0, vmax=1, aspect=aspects[r], interpolation="nearest")
-            if fov is not None and col in (1, 4, 5) and fov[r].min() == 0 and fov[r].max() > 0:
-                ax.contour(fov[r], levels=[0.5], colors="yellow", linewidths=0.8)
-            _letter_edges(ax, letters[r])
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if r == 0:
-                ax.set_title(titles[col], fontsize=10)
-            if col == 0:
-                ax.set_ylabel(views[r])
-    subtitle = f"fixed: {names[0]}   moving: {names[1]}" if names else ""
-    if title or subtitle:
-        fig.suptitle("\n".join(t for t in (title, subtitle) if t), fontsize=11)
-    # fixed margins instead of tight_layout(), which draws the whole figure an extra time to measure its text (the
-    # figure's share of a command is the difference of benchmarks/bench_speed.py's CLI rows with and without --no-qc)
-    fig.subplots_adjust(left=0.025, right=0.99, bottom=0.01, top=0.9 if subtitle else 0.93, wspace=0.32,
-                        hspace=0.06)
-    fig.savefig(p, dpi=80)
-    plt.close(fig)
+        panels = [(b, "gray"), (g, "gray"), (f, "gray"), (b - f, "diff"), (g - f, "diff"),
+                  (np.stack([f, g, np.zeros_like(f)], -1), "rgb")]
+        w, h = sizes[r]
+        y0 = row_y[r]
+        label = Image.new("RGB", (h, 16), "white")
+        ImageDraw.Draw(label).text((h / 2, 8), views[r], fill="black", font=font, anchor="mm")
+        canvas.paste(label.rotate(90, expand=True), (4, y0))
+        outline = None
+        if fov is not None and fov[r].min() == 0 and fov[r].max() > 0:
+            mask = Image.fromarray((fov[r] > 0).astype(np.uint8) * 255).resize((w, h), Image.Resampling.NEAREST)
+            outline = _outline(np.asarray(mask) > 0)
+        for c, (img, kind) in enumerate(panels):
+            x0 = xs[c] + (_PANEL - w) // 2
+            tile = np.asarray(Image.fromarray(_to_rgb(img, kind)).resize((w, h), Image.Resampling.NEAREST)).copy()
+            if outline is not None and c in (1, 4, 5):
+                tile[outline] = _YELLOW
+            canvas.paste(Image.fromarray(tile), (x0, y0))
+            if kind == "diff":
+                draw.rectangle((x0 - 1, y0 - 1, x0 + w, y0 + h), outline="black")
+                _colour_bar(draw, xs[c] + (_PANEL + w) // 2 + 6, y0, h, small)
+            _letter_edges(draw, letters[r], (x0, y0, w, h), small)
+    # the colour bars' meaning, once: the difference in units of the display window
+    draw.text((xs[4] + _PANEL + 4, top - 4), "diff / window", fill="black", font=small, anchor="ld")
+    canvas.save(p, format="PNG", compress_level=1)
     return p
 
 
-def _letter_edges(ax: object, letters: dict[str, str]) -> None:
-    """Orientation letters at the middle of each edge of a panel (axes coordinates)."""
-    from matplotlib import patheffects  # on use, as in qc_figure (no matplotlib import without a figure)
+def _colour_bar(draw, x: int, y: int, height: int, font) -> None:  # noqa: ANN001 - PIL objects
+    """A vertical colour bar of the difference map from -1 (bottom) to 1 (top), with ticks at -1, -0.5, 0, 0.5, 1."""
+    for k in range(height):
+        value = 1.0 - 2.0 * k / max(height - 1, 1)
+        rgb = _to_rgb(np.array([[value]]), "diff")[0, 0]
+        draw.line((x, y + k, x + _BAR - 1, y + k), fill=tuple(int(v) for v in rgb))
+    draw.rectangle((x, y, x + _BAR - 1, y + height - 1), outline="black")
+    for value in (-1.0, -0.5, 0.0, 0.5, 1.0):
+        ty = y + round((1.0 - value) / 2.0 * (height - 1))
+        draw.line((x + _BAR, ty, x + _BAR + 2, ty), fill="black")
+        draw.text((x + _BAR + 4, ty), f"{value:g}", fill="black", font=font, anchor="lm")
 
-    style = {"color": "yellow", "fontsize": 7, "fontweight": "bold",
-             "path_effects": [patheffects.withStroke(linewidth=1.5, foreground="black")]}
-    ax.text(0.01, 0.5, letters["left"], transform=ax.transAxes, ha="left", va="center", **style)
-    ax.text(0.99, 0.5, letters["right"], transform=ax.transAxes, ha="right", va="center", **style)
-    ax.text(0.5, 0.99, letters["top"], transform=ax.transAxes, ha="center", va="top", **style)
-    ax.text(0.5, 0.01, letters["bottom"], transform=ax.transAxes, ha="center", va="bottom", **style)
+
+def _letter_edges(draw, letters: dict[str, str], box: tuple[int, int, int, int], font) -> None:  # noqa: ANN001
+    """Orientation letters at the middle of each edge of a panel ``box`` = ``(x0, y0, width, height)`` pixels,
+    yellow with a black outline."""
+    x0, y0, w, h = box
+    style = {"fill": _YELLOW, "font": font, "stroke_width": 1, "stroke_fill": "black"}
+    draw.text((x0 + 2, y0 + h / 2), letters["left"], anchor="lm", **style)
+    draw.text((x0 + w - 2, y0 + h / 2), letters["right"], anchor="rm", **style)
+    draw.text((x0 + w / 2, y0 + 1), letters["top"], anchor="ma", **style)
+    draw.text((x0 + w / 2, y0 + h - 1), letters["bottom"], anchor="md", **style)

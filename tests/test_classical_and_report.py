@@ -119,6 +119,22 @@ def test_qc_slices_are_those_of_the_whole_resampled_volume(interpolator):
         assert np.ptp(parts[2]) > 0.1  # real image content, not padding alone
 
 
+def test_qc_difference_colours_and_field_of_view_outline():
+    """The difference panels' colour map (seismic: -1 dark blue, 0 white, +1 dark red; a sign flip swaps blue and red)
+    and the outline of a field-of-view mask (its border pixels only)."""
+    from monai_rigidreg.qc import _outline, _to_rgb
+
+    rgb = _to_rgb(np.array([[-1.0, -0.5, 0.0, 0.5, 1.0]]), "diff")[0]
+    # (a 256-entry table: values between its entries are off by a step, at most 2 of 255)
+    np.testing.assert_allclose(rgb, [[0, 0, 77], [0, 0, 255], [255, 255, 255], [255, 0, 0], [128, 0, 0]], atol=2)
+    gray = _to_rgb(np.array([[0.0, 0.5, 1.0]]), "gray")[0]
+    np.testing.assert_array_equal(gray, [[0, 0, 0], [128, 128, 128], [255, 255, 255]])
+    mask = np.zeros((7, 9), bool)
+    mask[2:5, 3:8] = True
+    border = _outline(mask)
+    assert border.sum() == 2 * 5 + 2 * 3 - 4 and not border[3, 4:7].any() and border[2, 3] and border[4, 7]
+
+
 def test_qc_orientation_letters_follow_the_direction_cosines():
     img = sitk.Image(4, 4, 4, sitk.sitkFloat32)
     axial, coronal, sagittal = edge_letters(img)  # identity LPS direction
