@@ -285,3 +285,27 @@ def test_shipped_weights_load_into_correlation_net():
 
     net, _ = load_bundle_network()
     assert any(".conv.unit0.adn.A.weight" in k for k in net.state_dict())
+
+
+@pytest.mark.parametrize("stride", [1, 2])
+def test_onednn_conv_is_the_torch_convolution_for_one_volume(stride):
+    """OneDNNConv3d sends a single float32 CPU volume to oneDNN: the output and the gradients are nn.Conv3d's (to
+    float rounding) for the same weights; a batch of two and float64 take nn.Conv3d's own path (identical)."""
+    from monai_rigidreg.networks.blocks import OneDNNConv3d
+
+    torch.manual_seed(0)
+    ref = torch.nn.Conv3d(6, 5, 3, stride, 1)
+    ours = OneDNNConv3d(6, 5, 3, stride, 1)
+    ours.load_state_dict(ref.state_dict())
+    x = torch.randn(1, 6, 11, 9, 10, generator=torch.Generator().manual_seed(2), requires_grad=True)
+    out, want = ours(x), ref(x)
+    assert out.shape == want.shape == (1, 5, *(-(-n // stride) for n in (11, 9, 10)))
+    torch.testing.assert_close(out, want, atol=1e-5, rtol=1e-5)
+    g_ours = torch.autograd.grad(out.square().sum(), [x, ours.weight])
+    g_ref = torch.autograd.grad(want.square().sum(), [x, ref.weight])
+    for a, b in zip(g_ours, g_ref):
+        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+    with torch.no_grad():
+        two = torch.randn(2, 6, 11, 9, 10)
+        assert torch.equal(ours(two), ref(two))
+        assert torch.equal(ours.double()(x.double()), ref.double()(x.double()))
