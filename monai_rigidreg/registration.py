@@ -446,8 +446,8 @@ class RigidRegistrar:
         each start has its own grid and tensors, the network sees them as one ``[B, 1, x, y, z]`` batch. Every
         operation of the network and its fine stage is per case, so a case's estimate is the one it gets alone, but
         for the fine stage's early stop, which waits for the slowest case of the batch (a few more steps of the
-        same iteration). On 2 CPU cores four starts take 0.61 s in one batch instead of 1.07 s one by one
-        (``benchmarks/bench_speed.py``, section 3, ``second_start``)."""
+        same iteration). On 2 CPU cores three starts take 0.57 s in one batch instead of 0.73 s one by one
+        (``benchmarks/bench_network_paths.py``)."""
         t = time.perf_counter()
         prepared = [self._start_tensors(fixed_img, moving_img, start, body) for start in starts]
         weight_ts = [weight_on_grid(weights, grid) for grid, _, _ in prepared]
@@ -751,8 +751,10 @@ class _Run:
 SAME_POSE_MM = 2.0
 """The network from the search's best candidate and from the identity reached the same pose when the mean distance
 between the network-grid points their estimates map is below this (mm): the further candidates are then skipped.
-On the six ``bench_speed.py`` pairs whose starts all ran, estimates of one pose were 0.1-1.0 mm apart (before the
-last level) and those of different poses 5.7-47 mm."""
+Converged estimates of one pose differ by a fraction of a millimetre and different poses by several millimetres or
+more (``details.global_search.best_start_to_identity_estimate_mm`` records it per case); with this rule every
+clinical-geometry pair of seeds 1500 and 2500 ends as it did with all four starts
+(``benchmarks/results/bench_clinical_geometry_0.4.6_network_*``)."""
 
 
 HU_AIR_LIMIT = -500.0

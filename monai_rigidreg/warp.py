@@ -73,8 +73,8 @@ def warp_volume_many(
     fixed -> moving matrices (LPS mm) -> ``[K, C, *fixed_grid.size]``, as :func:`warp_volume` of ``K`` copies.
 
     The ``K`` sampling grids are stacked along the first output axis of a single ``grid_sample`` call, so the volume
-    is read in place instead of being copied ``K`` times (a batch of ``expand``-ed copies is made contiguous by
-    ``grid_sample``: 0.27 s for the global search's 27 rotations of a 128^3 CBCT and its field of view).
+    is read in place instead of being copied ``K`` times (``grid_sample`` makes a batch of ``expand``-ed views
+    contiguous: 27 copies of a 128^3 CBCT and of its field of view for the global search's rotations).
     """
     if moving.ndim != 5 or moving.shape[0] != 1:
         raise ValueError(f"moving must be one volume [1, C, x, y, z], got shape {tuple(moving.shape)}")

@@ -1,0 +1,154 @@
+"""The 0.4.6 speed-ups of the registration path, each next to the way it replaced (CPU, shipped weights).
+
+Prints the median seconds of:
+
+* one kernel-3 convolution of a single volume, and one network run (learned regression + Gauss-Newton fine stage)
+  on one volume, with the encoder's kernel-3
+  convolutions as ``OneDNNConv3d`` (oneDNN directly) and as plain ``nn.Conv3d`` (PyTorch's batch-1 path);
+* the network from three starts one by one and as one batch (``RigidRegistrar._runs_from``);
+* the Gauss-Newton Jacobian on the last level's grid (about 1M voxels, two feature channels): from index ramps
+  (``fixed_jacobian``) and through the ``[6, 3, N]`` parameter flow it replaced;
+* the masked NCC maps of the global search's 27 rotation templates: one batched FFT (``masked_ncc_maps``) and one
+  template at a time (``masked_ncc_map``).
+
+Usage::
+
+    python benchmarks/bench_network_paths.py                      # a bench_speed pair if there is one, else a phantom
+    python benchmarks/bench_network_paths.py --pair bench_out/speed/case_1 --ct ../shared/data/<ct>.nii.gz
+
+Run it alone on the machine: a second CPU-bound process distorts every row.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+import numpy as np  # noqa: E402
+import SimpleITK as sitk  # noqa: E402
+
+import monai_rigidreg  # noqa: E402  (before torch: its thread policy applies before torch loads)
+
+
+def median_time(fn: Callable[[], object], repeats: int) -> float:
+    fn()  # warm-up (first-use costs)
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
+
+
+def load_pair(args: argparse.Namespace) -> tuple[sitk.Image, sitk.Image, str]:
+    from monai_rigidreg.io import load_volume
+
+    if args.pair is not None and args.ct is not None:
+        return load_volume(args.ct), load_volume(args.pair / "cbct.nii.gz"), f"{args.ct.name} / {args.pair}"
+    ct = Path("../shared/data/thorax_4dct_phase00_itkelastix.nii.gz")
+    pair = Path("bench_out/speed/case_1")
+    if ct.is_file() and (pair / "cbct.nii.gz").is_file():
+        return load_volume(ct), load_volume(pair / "cbct.nii.gz"), f"{ct.name} / {pair}"
+    from monai_rigidreg.simulation import simulate_pair
+
+    out = simulate_pair(Path(tempfile.mkdtemp()), phantom="shepp-logan-asym", params=(8, -5, 6, 4, -3, 7), seed=4)
+    return load_volume(out["fixed"]), load_volume(out["moving"]), "simulated phantom pair (fast preset)"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--pair", type=Path, default=None, help="a folder with cbct.nii.gz (with --ct)")
+    ap.add_argument("--ct", type=Path, default=None, help="the pair's planning CT")
+    ap.add_argument("--repeats", type=int, default=5)
+    args = ap.parse_args()
+
+    import torch
+
+    from monai_rigidreg.geometry import Grid, params_to_matrix
+    from monai_rigidreg.global_init import masked_ncc_map, masked_ncc_maps
+    from monai_rigidreg.networks import blocks
+    from monai_rigidreg.networks.gauss_newton import _parameter_flow, fixed_jacobian
+    from monai_rigidreg.registration import RigidRegistrar
+
+    fixed, moving, source = load_pair(args)
+    reg = RigidRegistrar.from_bundle(device="cpu")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, OMP_WAIT_POLICY="
+          f"{os.environ.get('OMP_WAIT_POLICY')}, monai-rigidreg {monai_rigidreg.__version__}; pair: {source}")
+    print(f"median of {args.repeats} runs after a warm-up, seconds\n")
+    rows: list[tuple[str, float, float]] = []
+
+    body = reg._bodies(fixed)
+    center = Grid.from_sitk(moving).center()
+    starts = [params_to_matrix(p, center) for p in
+              ([0.0] * 6, [12.0, -6.0, 4.0, 0.0, 10.0, 0.0], [-8.0, 0.0, 9.0, -15.0, 0.0, 5.0])]
+    prepared = [reg._start_tensors(fixed, moving, s, body) for s in starts]
+    mov = torch.stack([p[2] for p in prepared])
+    fix = torch.stack([p[1] for p in prepared])
+    grid = reg.grid_spec.canonical()
+
+    def one_run() -> None:
+        reg.estimate_batch(mov[:1], fix[:1], grid)
+
+    conv = blocks.OneDNNConv3d(16, 16, 3, 1, 1)
+    x = torch.rand(1, 16, 32, 32, 32, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        rows.append(("one kernel-3 convolution [1, 16, 32^3]: oneDNN | nn.Conv3d",
+                     median_time(lambda: conv(x), args.repeats),
+                     median_time(lambda: torch.nn.Conv3d._conv_forward(conv, x, conv.weight, conv.bias),
+                                 args.repeats)))
+
+    fast = median_time(one_run, args.repeats)
+    onednn = blocks.OneDNNConv3d._conv_forward
+    blocks.OneDNNConv3d._conv_forward = torch.nn.Conv3d._conv_forward  # PyTorch's own dispatch
+    try:
+        slow = median_time(one_run, args.repeats)
+    finally:
+        blocks.OneDNNConv3d._conv_forward = onednn
+    rows.append(("network run, one volume: OneDNNConv3d | nn.Conv3d", fast, slow))
+
+    batched = median_time(lambda: reg.estimate_batch(mov, fix, grid), args.repeats)
+    singles = median_time(lambda: [reg.estimate_batch(mov[i:i + 1], fix[i:i + 1], grid) for i in range(3)],
+                          args.repeats)
+    rows.append(("network from three starts: one batch | one by one", batched, singles))
+
+    native = Grid.centered((102, 102, 102), (1.875,) * 3, tuple(float(v) for v in center))
+    feats = torch.rand(1, 2, *native.size, generator=torch.Generator().manual_seed(0))
+
+    def through_flow() -> torch.Tensor:
+        g_idx = torch.gradient(feats, dim=(2, 3, 4))
+        inv_t = np.linalg.inv(native.index_to_physical()[:3, :3]).T
+        g_phys = [sum(float(inv_t[a, i]) * g_idx[i] for i in range(3) if inv_t[a, i] != 0.0) for a in range(3)]
+        # the flow of a grid seen for the first time (uncached), as on every case's last level
+        flow = _parameter_flow.__wrapped__(native, torch.float64, "cpu").to(torch.float32)
+        return torch.stack([sum(g_phys[a] * flow[k, a] for a in range(3)) for k in range(6)], 1)
+
+    ramps = median_time(lambda: fixed_jacobian(feats, native), args.repeats)
+    flows = median_time(through_flow, args.repeats)
+    rows.append(("Jacobian, 102^3 x 2 channels: index ramps | [6, 3, N] flow", ramps, flows))
+
+    gen = torch.Generator().manual_seed(1)
+    volume = torch.rand(42, 42, 42, generator=gen)
+    templates = torch.rand(27, 24, 24, 24, generator=gen)
+    masks = (torch.rand(27, 24, 24, 24, generator=gen) > 0.2).float()
+    spectra = (torch.fft.rfftn(volume), torch.fft.rfftn(volume * volume))
+    batched_ncc = median_time(lambda: masked_ncc_maps(volume, templates, masks, fft_dtype=torch.float32,
+                                                      spectra=spectra), args.repeats)
+    single_ncc = median_time(lambda: [masked_ncc_map(volume, templates[k], masks[k], fft_dtype=torch.float32,
+                                                     spectra=spectra) for k in range(27)], args.repeats)
+    rows.append(("search NCC maps, 27 templates 24^3 in 42^3: batched | one by one", batched_ncc, single_ncc))
+
+    width = max(len(r[0]) for r in rows)
+    print(f"{'':{width}s}  {'new s':>8s}  {'old s':>8s}  speed-up")
+    for name, new, old in rows:
+        print(f"{name:{width}s}  {new:8.4f}  {old:8.4f}  {old / new:5.2f}x")
+
+
+if __name__ == "__main__":
+    main()
