@@ -89,8 +89,9 @@ _DIFF_ANCHORS = np.array([[0.0, 0.0, 0.3], [0.0, 0.0, 1.0], [1.0, 1.0, 1.0], [1.
 red at -1, -0.5, 0, 0.5, 1), as a 256-entry table."""
 _DIFF_LUT = np.stack([np.interp(np.linspace(0.0, 1.0, 256), np.linspace(0.0, 1.0, 5), _DIFF_ANCHORS[:, c])
                       for c in range(3)], 1)
-_YELLOW, _PANEL, _GAP, _BAR = (255, 255, 0), 220, 14, 10
-"""Outline and letter colour; the largest panel side, the gap between panels and the colour bar width (pixels)."""
+_YELLOW, _PANEL, _GAP, _BAR, _MIN_ROW = (255, 255, 0), 220, 14, 10, 72
+"""Outline and letter colour; the largest panel side, the gap between panels, the colour bar width and the least
+height of a row (pixels)."""
 
 
 def _font(size: int):  # noqa: ANN202 - a PIL font
@@ -188,8 +189,10 @@ def qc_figure(
     col_w = [_PANEL + (bar_space if c in (3, 4) else 0) for c in range(6)]
     left, top = 26, 22 + (20 if title else 0) + (18 if names else 0)
     width = left + sum(col_w) + _GAP * 6
-    row_y = [top + sum(sizes[k][1] + _GAP for k in range(r)) for r in range(3)]  # each row as tall as its slices
-    height = row_y[2] + sizes[2][1] + 6
+    # each row as tall as its slices (at least _MIN_ROW pixels, for its label and colour bars)
+    row_h = [max(h, _MIN_ROW) for _, h in sizes]
+    row_y = [top + sum(row_h[k] + _GAP for k in range(r)) for r in range(3)]
+    height = row_y[2] + row_h[2] + 6
     canvas = Image.new("RGB", (width, height), "white")
     draw = ImageDraw.Draw(canvas)
     subtitle = f"fixed: {names[0]}   moving: {names[1]}" if names else ""
@@ -206,10 +209,10 @@ def qc_figure(
         panels = [(b, "gray"), (g, "gray"), (f, "gray"), (b - f, "diff"), (g - f, "diff"),
                   (np.stack([f, g, np.zeros_like(f)], -1), "rgb")]
         w, h = sizes[r]
-        y0 = row_y[r]
-        label = Image.new("RGB", (h, 16), "white")
-        ImageDraw.Draw(label).text((h / 2, 8), views[r], fill="black", font=font, anchor="mm")
-        canvas.paste(label.rotate(90, expand=True), (4, y0))
+        y0 = row_y[r] + (row_h[r] - h) // 2
+        label = Image.new("RGB", (row_h[r], 16), "white")
+        ImageDraw.Draw(label).text((row_h[r] / 2, 8), views[r], fill="black", font=font, anchor="mm")
+        canvas.paste(label.rotate(90, expand=True), (4, row_y[r]))
         outline = None
         if fov is not None and fov[r].min() == 0 and fov[r].max() > 0:
             mask = Image.fromarray((fov[r] > 0).astype(np.uint8) * 255).resize((w, h), Image.Resampling.NEAREST)
@@ -222,7 +225,7 @@ def qc_figure(
             canvas.paste(Image.fromarray(tile), (x0, y0))
             if kind == "diff":
                 draw.rectangle((x0 - 1, y0 - 1, x0 + w, y0 + h), outline="black")
-                _colour_bar(draw, xs[c] + (_PANEL + w) // 2 + 6, y0, h, small)
+                _colour_bar(draw, xs[c] + (_PANEL + w) // 2 + 6, row_y[r], row_h[r], small)
             _letter_edges(draw, letters[r], (x0, y0, w, h), small)
     # the colour bars' meaning, once: the difference in units of the display window
     draw.text((xs[4] + _PANEL + 4, top - 4), "diff / window", fill="black", font=small, anchor="ld")
