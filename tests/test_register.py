@@ -430,6 +430,42 @@ def test_further_search_starts_run_only_where_the_best_one_leads_elsewhere(fast_
     assert _fast_pair_tre(fast_pair, res) < 2.0
 
 
+def test_the_global_search_runs_beside_the_network_and_its_errors_reach_the_caller(fast_pair, shipped_registrar,
+                                                                                    monkeypatch):
+    """The search runs in a worker thread beside the network from the identity: its candidates are those of a direct
+    call, its own time and the wait are recorded, and an exception in it is raised to the caller (not lost in the
+    thread, no result written)."""
+    import threading
+
+    import monai_rigidreg.registration as reg_mod
+    from monai_rigidreg.confidence import cylindrical_fov_mask
+    from monai_rigidreg.global_init import global_search
+
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    threads = []
+    real = reg_mod.global_search
+
+    def recording(*args, **kwargs):
+        threads.append(threading.current_thread().name)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(reg_mod, "global_search", recording)
+    res = shipped_registrar(fixed, moving, resample_moving=False, assess=False)
+    assert threads == ["monai-rigidreg-search"]
+    body = shipped_registrar._bodies(fixed)
+    direct = global_search(fixed, moving, cylindrical_fov_mask(moving), hu_range=shipped_registrar.hu_range,
+                           fixed_body=body)
+    assert res.details["global_search"]["candidates"] == [c.to_dict() for c in direct]
+    assert res.timings["global_search"] > 0 and 0 <= res.timings["global_search_wait"] <= res.timings["total"]
+
+    def failing(*args, **kwargs):
+        raise MemoryError("search out of memory")
+
+    monkeypatch.setattr(reg_mod, "global_search", failing)
+    with pytest.raises(MemoryError, match="search out of memory"):
+        shipped_registrar(fixed, moving, resample_moving=False, assess=False)
+
+
 def test_a_better_swapped_estimate_replaces_a_wrong_one(fast_pair, shipped_registrar, monkeypatch):
     """The last level is made to return an estimate 12 mm off (once); the swapped-input estimate disagrees, matches
     the images better, and replaces it after its own last level: the result is right again, in the right frame
