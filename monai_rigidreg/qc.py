@@ -152,8 +152,9 @@ def qc_figure(
         names: display names of the fixed and moving inputs (e.g. file names), shown under the title.
 
     Drawn with Pillow (panels, colour bars, the orientation letters and the titles): with matplotlib (its imports,
-    24 axes to build and draw) the figure's share of a ``register`` command on 2 cores was 1.10 s, with Pillow 0.22 s
-    (the difference of ``benchmarks/bench_speed.py``'s command rows with and without ``--no-qc``, 0.4.5 -> 0.4.6).
+    24 axes to build and draw) the figure's share of a ``register`` command on 2 cores was 1.10 s, with Pillow
+    0.14-0.22 s (the difference of ``benchmarks/bench_speed.py``'s command rows with and without ``--no-qc``, 0.4.5
+    -> 0.4.6).
     """
     from PIL import Image, ImageDraw
 
