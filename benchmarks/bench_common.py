@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import os
 import threading
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -85,3 +87,16 @@ def set_threads(threads: int) -> None:
     torch.set_num_threads(threads)
     sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(threads)
 
+
+
+def median_time(fn: Callable[[], object], repeats: int, warm_up: bool = False) -> float:
+    """Median wall seconds of ``repeats`` calls of ``fn`` (after one untimed call with ``warm_up``: the process's
+    first-use costs)."""
+    if warm_up:
+        fn()
+    times = []
+    for _ in range(max(1, repeats)):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))

@@ -24,7 +24,6 @@ import argparse
 import os
 import sys
 import tempfile
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -34,6 +33,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 import SimpleITK as sitk  # noqa: E402
 import torch  # noqa: E402
+from bench_common import median_time  # noqa: E402
 from monai.data import MetaTensor  # noqa: E402
 from monai.transforms import GaussianSmooth  # noqa: E402
 
@@ -47,15 +47,6 @@ from monai_rigidreg.transforms import NormalizeHU, ResampleToNetworkGrid  # noqa
 from monai_rigidreg.transforms.grid import antialias_sigmas, crop_to_grid  # noqa: E402
 
 
-def _median_time(fn: Callable[[], object], repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
-
-
 def _time_case(reg: RigidRegistrar, it: dict, k: int, tmp: Path, repeats: int,
                add: Callable[[str, float], None]) -> None:
     """Time every stage on one datalist item; ``add(name, seconds)`` collects the medians."""
@@ -64,16 +55,16 @@ def _time_case(reg: RigidRegistrar, it: dict, k: int, tmp: Path, repeats: int,
     f32 = tmp / f"ct{k}_float32.nii.gz"
     sitk.WriteImage(sitk.Cast(stored, sitk.sitkFloat32), str(f32), True)
     ct_type = stored.GetPixelIDTypeAsString()
-    add(f"read CT as stored ({ct_type}), load_volume", _median_time(lambda: load_volume(it["fixed"]), repeats))
-    add("read CBCT as stored, load_volume", _median_time(lambda: load_volume(it["moving"]), repeats))
+    add(f"read CT as stored ({ct_type}), load_volume", median_time(lambda: load_volume(it["fixed"]), repeats))
+    add("read CBCT as stored, load_volume", median_time(lambda: load_volume(it["moving"]), repeats))
 
     def sequential_read(path: Path = f32) -> None:
         sitk.ReadImage(str(path))
         _check_nifti_finite(path)
 
-    add("read CT float32 .nii.gz, NaN check after the read", _median_time(sequential_read, repeats))
+    add("read CT float32 .nii.gz, NaN check after the read", median_time(sequential_read, repeats))
     add("read CT float32 .nii.gz, NaN check overlapped (load_volume)",
-        _median_time(lambda: load_volume(f32), repeats))
+        median_time(lambda: load_volume(f32), repeats))
 
     grid = reg.network_grid(fixed, moving)
     resampler = ResampleToNetworkGrid(reg.network_size, reg.network_spacing)
@@ -83,8 +74,8 @@ def _time_case(reg: RigidRegistrar, it: dict, k: int, tmp: Path, repeats: int,
         for img in (fixed, moving):
             normalize(resampler(sitk_to_metatensor(img), grid=grid))
 
-    add("preprocess both, MONAI transforms on MetaTensor", _median_time(monai_path, repeats))
-    add("preprocess both, registrar path", _median_time(
+    add("preprocess both, MONAI transforms on MetaTensor", median_time(monai_path, repeats))
+    add("preprocess both, registrar path", median_time(
         lambda: (reg.preprocess(fixed, grid), reg.preprocess(moving, grid)), repeats))
 
     in_grid = Grid.from_sitk(fixed)
@@ -92,24 +83,24 @@ def _time_case(reg: RigidRegistrar, it: dict, k: int, tmp: Path, repeats: int,
     raw = torch.from_numpy(sitk.GetArrayFromImage(fixed)).permute(2, 1, 0)[None]
     crop = crop_to_grid(raw, in_grid, grid, int(np.ceil(4 * max(sig))) + 1)[0].contiguous()
     add(f"anti-alias CT crop {tuple(crop.shape[1:])}, MONAI GaussianSmooth",
-        _median_time(lambda: GaussianSmooth(sigma=sig)(crop), repeats))
+        median_time(lambda: GaussianSmooth(sigma=sig)(crop), repeats))
     add(f"anti-alias CT crop {tuple(crop.shape[1:])}, gaussian_smooth",
-        _median_time(lambda: gaussian_smooth(crop, sig), repeats))
+        median_time(lambda: gaussian_smooth(crop, sig), repeats))
 
     f_t, m_t = reg.preprocess(fixed, grid), reg.preprocess(moving, grid)
     aff = torch.as_tensor(grid.affine("RAS"))
     f_mt, m_mt = MetaTensor(f_t, affine=aff), MetaTensor(m_t, affine=aff)
     reg.estimate(m_t, f_t, grid)  # warm-up
-    add("network forward, MetaTensor inputs", _median_time(lambda: reg.estimate(m_mt, f_mt, grid), repeats))
-    add("network forward, plain tensors", _median_time(lambda: reg.estimate(m_t, f_t, grid), repeats))
+    add("network forward, MetaTensor inputs", median_time(lambda: reg.estimate(m_mt, f_mt, grid), repeats))
+    add("network forward, plain tensors", median_time(lambda: reg.estimate(m_t, f_t, grid), repeats))
     params = reg.estimate(m_t, f_t, grid)
     fov_t = reg._on_grid(cylindrical_fov_mask(moving), grid, "nearest", 0.0)[0]
     add("confidence (edge check + swapped estimate)",
-        _median_time(lambda: reg.assess(m_t, f_t, grid, params, fov_t), repeats))
+        median_time(lambda: reg.assess(m_t, f_t, grid, params, fov_t), repeats))
     add("register call, volumes in memory (with confidence)",
-        _median_time(lambda: reg(fixed, moving, resample_moving=False), repeats))
+        median_time(lambda: reg(fixed, moving, resample_moving=False), repeats))
     add("register call from files (with confidence)",
-        _median_time(lambda: reg(it["fixed"], it["moving"], resample_moving=False), repeats))
+        median_time(lambda: reg(it["fixed"], it["moving"], resample_moving=False), repeats))
     f32.unlink()
 
 

@@ -25,7 +25,6 @@ import argparse
 import os
 import sys
 import tempfile
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -33,18 +32,13 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 import numpy as np  # noqa: E402
 import SimpleITK as sitk  # noqa: E402
+from bench_common import median_time as _median  # noqa: E402
 
 import monai_rigidreg  # noqa: E402  (before torch: its thread policy applies before torch loads)
 
 
 def median_time(fn: Callable[[], object], repeats: int) -> float:
-    fn()  # warm-up (first-use costs)
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times))
+    return _median(fn, repeats, warm_up=True)
 
 
 def load_pair(args: argparse.Namespace) -> tuple[sitk.Image, sitk.Image, str]:
