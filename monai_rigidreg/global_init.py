@@ -18,7 +18,9 @@ the CBCT centre, ``R`` the candidate rotation and ``d`` the CT shift the correla
 ``search_starts``) as further starts of the network (the first is the identity) and keeps the estimate whose CBCT field
 of view matches the CT best.
 
-Cost: ``RegistrationResult.timings["global_search"]`` (27 rotation candidates at 8 mm over +-72 mm).
+Cost: ``RegistrationResult.timings["global_search"]`` (27 rotation candidates at 8 mm over +-72 mm; the registrar
+runs it in a worker thread beside the network from the identity, ``timings["global_search_wait"]`` is what it
+waited for it).
 """
 
 from __future__ import annotations
