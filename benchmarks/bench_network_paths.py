@@ -68,7 +68,7 @@ def main() -> None:
     from monai_rigidreg.geometry import Grid, params_to_matrix
     from monai_rigidreg.global_init import masked_ncc_map, masked_ncc_maps
     from monai_rigidreg.networks import blocks
-    from monai_rigidreg.networks.gauss_newton import _parameter_flow, fixed_jacobian
+    from monai_rigidreg.networks.gauss_newton import fixed_jacobian, parameter_flow
     from monai_rigidreg.registration import RigidRegistrar
 
     fixed, moving, source = load_pair(args)
@@ -119,8 +119,7 @@ def main() -> None:
         g_idx = torch.gradient(feats, dim=(2, 3, 4))
         inv_t = np.linalg.inv(native.index_to_physical()[:3, :3]).T
         g_phys = [sum(float(inv_t[a, i]) * g_idx[i] for i in range(3) if inv_t[a, i] != 0.0) for a in range(3)]
-        # the flow of a grid seen for the first time (uncached), as on every case's last level
-        flow = _parameter_flow.__wrapped__(native, torch.float64, "cpu").to(torch.float32)
+        flow = parameter_flow(native, torch.float32)  # as before 0.4.6, for the grid of each case's last level
         return torch.stack([sum(g_phys[a] * flow[k, a] for a in range(3)) for k in range(6)], 1)
 
     ramps = median_time(lambda: fixed_jacobian(feats, native), args.repeats)

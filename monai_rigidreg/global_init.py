@@ -204,7 +204,6 @@ def global_search(
         # tissue alone lets the template slide over the body by several mm)
         moving_fov = cylindrical_fov_mask(moving)
     fov, fov_grid = sitk_tensor(moving_fov)
-    fov = fov.contiguous()  # sampled once per candidate: one transposition, not one per candidate (0.2 s)
     center = cb_grid.center()
     lo, hi = cb_grid.physical_extent()
     extent = np.minimum(np.asarray(hi) - np.asarray(lo), template_extent_mm)

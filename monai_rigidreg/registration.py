@@ -470,9 +470,10 @@ class RigidRegistrar:
 
     def _best_start(self, fixed_img: sitk.Image, moving_img: sitk.Image, fov_img: sitk.Image, run: _Run,
                     cascade_steps: int | None, pose_weights: Sequence[sitk.Image], timings: dict[str, float],
-                    body: sitk.Image | None, region: sitk.Image | None, searching: _Background | None = None
+                    body: sitk.Image | None, region: sitk.Image | None, searching: _Background
                     ) -> tuple[_Run, dict[str, Any], str]:
-        """The global search (:func:`~monai_rigidreg.global_init.global_search`) and, where its best candidate and
+        """The global search's candidates (:func:`~monai_rigidreg.global_init.global_search`, running in
+        ``searching`` since before the network from the identity) and, where its best candidate and
         the estimate from the identity (``run``) disagree by more than ``SEARCH_AGREE_MM``, the network from the
         search's best candidate and, unless it ends where the identity's estimate did (within ``SAME_POSE_MM``), from
         the next best up to ``search_starts`` in all; the estimate whose CBCT field of view matches the CT best
@@ -480,17 +481,13 @@ class RigidRegistrar:
         run, ``details.global_search`` (``starts_run``: how many candidates the network ran from) and
         ``details.start`` (``"identity"`` or ``"search"``)."""
         t = time.perf_counter()
-        if searching is None:
-            candidates = global_search(fixed_img, moving_img, fov_img, hu_range=self.hu_range, fixed_body=body,
-                                       **self.search_settings)
-        else:
-            candidates = searching.result()
-            timings["global_search_wait"] = time.perf_counter() - t
+        candidates = searching.result()
+        timings["global_search_wait"] = time.perf_counter() - t
         points = grid_points(run.grid, 8)
         agree = matrix_distance_mm(candidates[0].matrix, run.total, points)
         search: dict[str, Any] = {"best": candidates[0].to_dict(), "distance_to_identity_start_mm": round(agree, 2),
                                   "candidates": [c.to_dict() for c in candidates]}
-        timings["global_search"] = time.perf_counter() - t if searching is None else searching.seconds
+        timings["global_search"] = searching.seconds
         started = "identity"
         if agree > SEARCH_AGREE_MM:
             t = time.perf_counter()

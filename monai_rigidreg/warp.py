@@ -49,16 +49,24 @@ def warp_volume(
         raise ValueError(f"moving must be [B, C, D, H, W], got shape {tuple(moving.shape)}")
     if matrix.shape[0] != moving.shape[0]:
         raise ValueError(f"batch of matrix ({matrix.shape[0]}) and moving ({moving.shape[0]}) differ")
+    sample_at = _sample_points(moving, matrix, fixed_grid, moving_grid, mode, padding_mode, array_order)
+    return F.grid_sample(moving.contiguous(), sample_at, mode=mode, padding_mode=padding_mode, align_corners=True)
+
+
+def _sample_points(moving: torch.Tensor, matrices: torch.Tensor, fixed_grid: Grid, moving_grid: Grid, mode: str,
+                   padding_mode: str, array_order: str) -> torch.Tensor:
+    """The checks :func:`warp_volume` and :func:`warp_volume_many` share (``moving``'s spatial shape against its
+    grid, the modes) and ``grid_sample``'s sampling points of the ``K`` fixed -> moving ``matrices``:
+    ``[K, *fixed spatial, 3]`` in ``moving``'s dtype."""
     expected = tuple(moving_grid.size) if array_order == "xyz" else tuple(moving_grid.size)[::-1]
     if tuple(moving.shape[2:]) != expected:
         raise ValueError(f"moving spatial shape {tuple(moving.shape[2:])} does not match its grid {expected}")
     if mode not in MODES or padding_mode not in PADDING_MODES:
         raise ValueError(f"mode must be one of {MODES} and padding_mode one of {PADDING_MODES}, got {mode!r}, "
                          f"{padding_mode!r}")
-    theta = normalized_theta(matrix.to(torch.float64), fixed_grid, moving_grid, array_order).to(moving.dtype)
+    theta = normalized_theta(matrices.to(torch.float64), fixed_grid, moving_grid, array_order).to(moving.dtype)
     out_size = tuple(fixed_grid.size) if array_order == "xyz" else tuple(fixed_grid.size)[::-1]
-    sample_at = F.affine_grid(theta[:, :3], [moving.shape[0], moving.shape[1], *out_size], align_corners=True)
-    return F.grid_sample(moving.contiguous(), sample_at, mode=mode, padding_mode=padding_mode, align_corners=True)
+    return F.affine_grid(theta[:, :3], [matrices.shape[0], moving.shape[1], *out_size], align_corners=True)
 
 
 def warp_volume_many(
@@ -78,15 +86,9 @@ def warp_volume_many(
     """
     if moving.ndim != 5 or moving.shape[0] != 1:
         raise ValueError(f"moving must be one volume [1, C, x, y, z], got shape {tuple(moving.shape)}")
-    if tuple(moving.shape[2:]) != tuple(moving_grid.size):
-        raise ValueError(f"moving spatial shape {tuple(moving.shape[2:])} does not match its grid {moving_grid.size}")
-    if mode not in MODES or padding_mode not in PADDING_MODES:
-        raise ValueError(f"mode must be one of {MODES} and padding_mode one of {PADDING_MODES}, got {mode!r}, "
-                         f"{padding_mode!r}")
     k, c = matrices.shape[0], moving.shape[1]
     size = tuple(fixed_grid.size)
-    theta = normalized_theta(matrices.to(torch.float64), fixed_grid, moving_grid, "xyz").to(moving.dtype)
-    sample_at = F.affine_grid(theta[:, :3], [k, c, *size], align_corners=True)  # [K, x, y, z, 3]
+    sample_at = _sample_points(moving, matrices, fixed_grid, moving_grid, mode, padding_mode, "xyz")
     out = F.grid_sample(moving.contiguous(), sample_at.reshape(1, k * size[0], *size[1:], 3), mode=mode,
                         padding_mode=padding_mode, align_corners=True)  # [1, C, K * x, y, z]
     return out.reshape(c, k, *size).transpose(0, 1)

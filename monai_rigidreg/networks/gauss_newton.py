@@ -10,7 +10,7 @@ into the basin.
 Conventions are those of :mod:`monai_rigidreg.geometry`: ``T`` maps fixed points to moving points (LPS mm), the
 estimate is a ``[B, 4, 4]`` matrix, parameters are ``(tx, ty, tz, rx, ry, rz)`` mm / degrees about the grid
 centre. The Jacobian combines the image gradient with the voxel displacement per parameter computed from
-:func:`~monai_rigidreg.geometry.params_to_matrix_torch` and the grid's index-to-physical matrix, so no convention
+:func:`~monai_rigidreg.geometry.params_to_matrix` and the grid's index-to-physical matrix, so no convention
 is derived a second time here (tests compare it with finite differences of :func:`~monai_rigidreg.warp.warp_volume`).
 """
 
@@ -52,29 +52,27 @@ def parameter_flow(grid: Grid, dtype: torch.dtype = torch.float64, device: torch
                    ) -> torch.Tensor:
     """Physical displacement of every voxel centre per unit parameter at the identity: ``[6, 3, x, y, z]``.
 
-    ``d W_p(x) / dp_k`` (mm per mm, mm per degree) for ``W_p`` of
-    :func:`~monai_rigidreg.geometry.params_to_matrix_torch` about ``grid.center()``, by central differences of that
-    function (exact for translations; rotations to O(h^2) with h = 1e-3 degrees).
-
-    It depends on the grid alone, so the last few are cached (the fine stage asks for the same network-grid
-    levels on every call). The returned tensor is shared: do not modify it in place.
+    ``d W_p(x) / dp_k`` (mm per mm, mm per degree) for ``W_p`` of :func:`~monai_rigidreg.geometry.params_to_matrix`
+    about ``grid.center()``, by central differences of that function (:func:`_parameter_derivative`; exact for
+    translations, rotations to O(h^2) with h = 1e-3 degrees). The fine stage does not build it
+    (:func:`fixed_jacobian` uses its affine coefficients); it is the reference the tests check them against.
     """
-    dev = str(torch.device(device) if device is not None else torch.device("cpu"))
-    if torch.jit.is_tracing():  # a traced graph must compute it (a cached tensor would enter it as a constant)
-        return _parameter_flow.__wrapped__(grid, dtype, dev)
-    return _parameter_flow(grid, dtype, dev)
-
-
-@functools.lru_cache(maxsize=8)
-def _parameter_flow(grid: Grid, dtype: torch.dtype, device: str) -> torch.Tensor:
-    h = 1e-3
-    eye = torch.eye(6, dtype=torch.float64, device=device)
-    mats = params_to_matrix_torch(torch.cat([eye * h, -eye * h], 0), grid.center())  # [12, 4, 4]
-    deriv = (mats[:6] - mats[6:])[:, :3, :] / (2 * h)  # [6, 3, 4]
+    deriv = torch.as_tensor(_parameter_derivative(grid), dtype=torch.float64, device=device)  # [6, 3, 4]
     # LPS mm of every voxel centre, in the xyz (index-major) order of the volume
     pts = torch.as_tensor(grid_points(grid, 1).T, dtype=torch.float64, device=device)  # [3, N]
     flow = deriv[:, :, :3] @ pts + deriv[:, :, 3:]  # [6, 3, N]
     return flow.reshape(6, 3, *grid.size).to(dtype)
+
+
+def _parameter_derivative(grid: Grid) -> np.ndarray:
+    """``d W_p / dp_k`` at ``p = 0`` as an affine map of physical points: ``[6, 3, 4]`` (``[:, :, :3]`` linear part,
+    ``[:, :, 3]`` offset), from central differences of :func:`~monai_rigidreg.geometry.params_to_matrix` about
+    ``grid.center()``. numpy, not torch: under ``torch.jit.trace`` a cached result (:func:`_flow_coefficients`) must
+    not have recorded traced operations (the cache would make a second trace differ from the first)."""
+    h = 1e-3
+    center = grid.center()
+    mats = np.stack([params_to_matrix(sign * h * row, center) for sign in (1.0, -1.0) for row in np.eye(6)])
+    return (mats[:6] - mats[6:])[:, :3, :] / (2 * h)
 
 
 def fixed_jacobian(fixed: torch.Tensor, grid: Grid) -> torch.Tensor:
@@ -117,16 +115,11 @@ def _flow_coefficients(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     ``J_k = sum_m (sum_i slope[k, i, m] u_i + offset[k, m]) dI/du_m`` with ``u`` the voxel index about the grid
     centre and ``dI/du_m`` the image gradient per index step along array axis ``m``.
 
-    From central differences of :func:`~monai_rigidreg.geometry.params_to_matrix` (the numpy twin of the
-    :func:`~monai_rigidreg.geometry.params_to_matrix_torch` that :func:`parameter_flow` differentiates):
+    From the derivative :func:`parameter_flow` is built from (:func:`_parameter_derivative`):
     ``flow_k(p) = D_k (p - c) + d_k`` (physical, mm), ``p - c = A u`` with ``A`` the grid's direction times spacing,
     and the physical gradient ``A^-T dI/du``."""
-    h = 1e-3
     center = grid.center()
-    # numpy, not torch: under torch.jit.trace a cached result must not have recorded traced operations (the cache
-    # would make a second trace differ from the first)
-    mats = np.stack([params_to_matrix(sign * h * row, center) for sign in (1.0, -1.0) for row in np.eye(6)])
-    deriv = (mats[:6] - mats[6:])[:, :3, :] / (2 * h)  # [6, 3, 4]
+    deriv = _parameter_derivative(grid)  # [6, 3, 4]
     lin = deriv[:, :, :3]  # D_k
     const = lin @ center + deriv[:, :, 3]  # d_k = flow at the centre
     a = grid.index_to_physical()[:3, :3]
