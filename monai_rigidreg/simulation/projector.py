@@ -103,8 +103,8 @@ def cone_forward(
         device: ``"cpu"``, ``"cuda"`` or ``"auto"``.
         max_samples: planes are processed in chunks of about this many samples. 2^20: under the package's
             passive OpenMP waiting every operation on a chunk wakes the worker threads, and on 2 cores the
-            128^3 / 360-view CBCT took 3.15 s with 2^18, 2.72 s with 2^20, 2.93 s with 2^21 (2.37-2.43 s with
-            spinning threads, either size; ``benchmarks/bench_simulation.py``).
+            128^3 / 360-view CBCT took 3.3 s with 2^18, 2.7 s with 2^20 (``benchmarks/bench_simulation.py``,
+            ``bench_simulation_0.4.6_2026-12-02.txt``).
         use_symmetry: use the 90 degree symmetry when it applies (same result, faster).
 
     Returns:
