@@ -134,7 +134,7 @@ def main() -> int:
             continue
         r = json.loads(res.stdout.strip().splitlines()[-1])
         print(
-            f"{r['row']:32s} {r['seconds']:8.1f} {r['first_s']:8.1f} {r['voxelize_s']:10.1f} {r['peak_mb']:8.0f} "
+            f"{r['row']:32s} {r['seconds']:8.2f} {r['first_s']:8.2f} {r['voxelize_s']:10.1f} {r['peak_mb']:8.0f} "
             f"{r['rmse_hu']:8.1f} {r['ssim']:6.3f}  {r['note']}",
             flush=True,
         )

@@ -736,9 +736,9 @@ def simulate_clinical_cbct(
     gen = torch.Generator(device=dev).manual_seed(int(seed))
     proj = apply_cbct_physics(proj, geom, spec.physics, gen)
     scanner_grid = spec.grid()
-    rec = fdk(proj, geom, scanner_grid, spec.window, dev)
-    del proj
     fov = fov_mask(scanner_grid, geom, spec.physics, dev)
+    rec = fdk(proj, geom, scanner_grid, spec.window, dev, columns=fov.any(2))  # the rest is masked to 0 below
+    del proj
     rec = torch.where(fov, rec, torch.zeros_like(rec))
     out_grid = spec.grid(p)
     arr = mu_to_hu(rec.detach().to("cpu", torch.float32)).numpy().transpose(2, 1, 0)

@@ -107,6 +107,7 @@ def fdk(
     grid: Grid,
     window: str = "ram-lak",
     device: str | torch.device | None = "auto",
+    columns: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Feldkamp-Davis-Kress reconstruction of cone-beam line integrals.
 
@@ -116,6 +117,9 @@ def fdk(
         grid: output grid (axis-aligned, LPS mm, centred anywhere).
         window: filter window, one of :data:`FILTERS`.
         device: ``"cpu"``, ``"cuda"`` or ``"auto"``.
+        columns: ``[nx, ny]`` bool, the voxel columns to reconstruct (``None``: all; the others are 0), e.g.
+            ``fov_mask(...).any(2)`` when the result is masked to the field of view anyway
+            (:func:`~monai_rigidreg.simulation.projector.cone_backproject`).
 
     Returns:
         ``[nx, ny, nz]`` float32 linear attenuation (1/mm) on ``device``.
@@ -127,7 +131,7 @@ def fdk(
     cosw = (geometry.sdd / torch.sqrt(geometry.sdd**2 + u**2 + v**2)).to(torch.float32)
     iso_pitch = geometry.pixel_pitch[0] / geometry.magnification  # type: ignore[index]
     filtered = ramp_filter(projections.to(dev) * cosw, iso_pitch, window)
-    return cone_backproject(filtered, grid, geometry, dev) * (math.pi / geometry.num_views)
+    return cone_backproject(filtered, grid, geometry, dev, columns=columns) * (math.pi / geometry.num_views)
 
 
 def fbp_fan(

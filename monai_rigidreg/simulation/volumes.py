@@ -153,10 +153,12 @@ def simulate_cbct(
     del moved, obj
     gen = torch.Generator(device=dev).manual_seed(int(seed))
     proj = apply_cbct_physics(proj, geom, physics, gen)
-    rec = fdk(proj, geom, cbct_grid, window, dev)
     fov = fov_mask(cbct_grid, geom, physics, dev)
-    if mask_outside_fov:
+    if mask_outside_fov:  # reconstruct only the columns the field of view touches (the rest is set to 0 anyway)
+        rec = fdk(proj, geom, cbct_grid, window, dev, columns=fov.any(2))
         rec = torch.where(fov, rec, torch.zeros_like(rec))
+    else:
+        rec = fdk(proj, geom, cbct_grid, window, dev)
     return rec, fov, geom
 
 
