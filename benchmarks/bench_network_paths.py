@@ -1,4 +1,4 @@
-"""The 0.4.6 speed-ups of the registration path, each next to the way it replaced (CPU, shipped weights).
+"""The 0.4.6 and 0.4.7 speed-ups of the registration path, each next to the way it replaced (CPU, shipped weights).
 
 Prints the median seconds of:
 
@@ -9,7 +9,9 @@ Prints the median seconds of:
 * the Gauss-Newton Jacobian on the last level's grid (about 1M voxels, two feature channels): from index ramps
   (``fixed_jacobian``) and through the ``[6, 3, N]`` parameter flow it replaced;
 * the masked NCC maps of the global search's 27 rotation templates: one batched FFT (``masked_ncc_maps``) and one
-  template at a time (``masked_ncc_map``).
+  template at a time (``masked_ncc_map``);
+* the CT's body mask (``coarse_body_mask``, what the registration computes once per CT) with the binary opening,
+  closing and dilation as numpy shifted ORs / ANDs of the ball (0.4.7) and as ITK's filters.
 
 Usage::
 
@@ -136,6 +138,27 @@ def main() -> None:
     single_ncc = median_time(lambda: [masked_ncc_map(volume, templates[k], masks[k], fft_dtype=torch.float32,
                                                      spectra=spectra) for k in range(27)], args.repeats)
     rows.append(("search NCC maps, 27 templates 24^3 in 42^3: batched | one by one", batched_ncc, single_ncc))
+
+    from monai_rigidreg import body as body_module
+
+    def itk_filter(fn: Callable[..., sitk.Image], **kw: object) -> Callable[[np.ndarray, list[int]], np.ndarray]:
+        return lambda arr, radius: sitk.GetArrayFromImage(
+            fn(sitk.GetImageFromArray(arr.astype(np.uint8)), kernelRadius=radius, kernelType=sitk.sitkBall, **kw)) != 0
+
+    def itk_dilate(mask: sitk.Image, radius_mm: float) -> sitk.Image:
+        return sitk.BinaryDilate(sitk.Cast(mask, sitk.sitkUInt8), kernelRadius=body_module._radius_vox(
+            radius_mm, mask.GetSpacing()), kernelType=sitk.sitkBall, backgroundValue=0, foregroundValue=1)
+
+    ours = median_time(lambda: body_module.coarse_body_mask(fixed), args.repeats)
+    saved = body_module._opening, body_module._closing, body_module._dilate
+    body_module._opening = itk_filter(sitk.BinaryMorphologicalOpening, foregroundValue=1)
+    body_module._closing = itk_filter(sitk.BinaryMorphologicalClosing, foregroundValue=1, safeBorder=True)
+    body_module._dilate = itk_dilate
+    try:
+        itk = median_time(lambda: body_module.coarse_body_mask(fixed), args.repeats)
+    finally:
+        body_module._opening, body_module._closing, body_module._dilate = saved
+    rows.append((f"CT body mask {fixed.GetSize()}: numpy ball morphology | ITK filters", ours, itk))
 
     width = max(len(r[0]) for r in rows)
     print(f"{'':{width}s}  {'new s':>8s}  {'old s':>8s}  speed-up")

@@ -90,6 +90,37 @@ def test_physical_xyz_matches_simpleitk():
         np.testing.assert_allclose(pts[ijk[2], ijk[1], ijk[0]], img.TransformIndexToPhysicalPoint(ijk), atol=1e-9)
 
 
+@pytest.mark.parametrize("radius", [[1, 1, 1], [2, 2, 2], [1, 2, 3], [3, 1, 2]])
+@pytest.mark.parametrize("kind", ["noise", "blobs"])
+def test_ball_morphology_equals_itk(radius, kind):
+    """body_mask's numpy ball filters give ITK's binary opening (outside counts as foreground for the erosion),
+    closing with a safe border and dilation voxel for voxel, on masks that touch the image border, with anisotropic
+    radii (a transposed kernel or a wrong border rule changes voxels)."""
+    from scipy import ndimage
+
+    from monai_rigidreg.body import _ball_filter, _closing, _opening
+
+    rng = np.random.default_rng(sum(radius) + len(kind))
+    shape = (17, 21, 26)
+    arr = ndimage.gaussian_filter(rng.random(shape), 1.5) > 0.5 if kind == "blobs" else rng.random(shape) > 0.4
+    arr[:2] = True
+    arr[:, :, -1] = True
+    img = sitk.GetImageFromArray(arr.astype(np.uint8))
+    ball = sitk.sitkBall
+    opened = sitk.BinaryMorphologicalOpening(img, kernelRadius=radius, kernelType=ball, foregroundValue=1)
+    closed = sitk.BinaryMorphologicalClosing(img, kernelRadius=radius, kernelType=ball, foregroundValue=1,
+                                             safeBorder=True)
+    sparse = rng.random(shape) > 0.995  # dilated, the dense masks fill the whole image
+    sparse[:, -1] = True
+    dilated = sitk.BinaryDilate(sitk.GetImageFromArray(sparse.astype(np.uint8)), kernelRadius=radius,
+                                kernelType=ball, backgroundValue=0, foregroundValue=1)
+    for ours, itk in ((_opening(arr, radius), opened), (_closing(arr, radius), closed),
+                      (_ball_filter(sparse, radius, True, False), dilated)):
+        ref = sitk.GetArrayFromImage(itk) != 0
+        assert 0 < ref.sum() < ref.size
+        np.testing.assert_array_equal(ours, ref)
+
+
 def test_body_mask_keeps_lungs_and_drops_a_separate_couch():
     img, body, lungs = torso()
     couch = place_couch(img, gap_mm=10.0)
