@@ -53,6 +53,7 @@ __all__ = [
     "fov_ncc",
     "confidence_score",
     "assess_estimate",
+    "swap_inputs",
 ]
 
 CONFIDENCE_THRESHOLD = 0.5
@@ -180,6 +181,35 @@ def confidence_score(
     return float(min(s_gain, s_swap, s_air, s_region))
 
 
+def _masked_swap(moving_t: torch.Tensor, fixed_t: torch.Tensor, fov_w: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(moving, fixed)`` inputs of the swapped estimate: the CT restricted to the CBCT's field of view as placed
+    by an estimate (``fov_w``: the field of view warped by it) against the CBCT. A network with a fine stage aligns
+    only where its moving input has data, so an unmasked CT (data everywhere) against a truncated CBCT would bias the
+    swapped estimate even when the forward one is right."""
+    return fixed_t * (fov_w > 0.5).to(fixed_t.dtype)[None], moving_t
+
+
+def swap_inputs(moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, params: np.ndarray, fov: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The swapped-input estimator's ``(moving, fixed)`` for an estimate ``params`` (``[6]`` mm/deg about the grid
+    centre): what :func:`assess_estimate` hands ``estimate``, for a caller that starts the swapped estimate early.
+
+    Args:
+        moving_t, fixed_t: ``[1, x, y, z]`` CBCT and CT on ``grid``.
+        grid: the network grid.
+        params: the estimate whose field-of-view placement masks the CT.
+        fov: ``[x, y, z]`` field-of-view mask of ``moving_t`` on ``grid``.
+
+    Returns:
+        ``([1, x, y, z]`` masked CT, ``[1, x, y, z]`` CBCT): the swapped estimator's moving and fixed inputs.
+    """
+    with torch.no_grad():
+        p = torch.as_tensor(np.asarray(params, dtype=np.float64)[None], dtype=torch.float32)
+        fov_w = warp_volume_params(fov[None, None].float(), p, grid, mode="nearest")[0, 0]
+    return _masked_swap(moving_t, fixed_t, fov_w)
+
+
 def assess_estimate(
     moving_t: torch.Tensor,
     fixed_t: torch.Tensor,
@@ -189,6 +219,7 @@ def assess_estimate(
     estimate: Callable[[torch.Tensor, torch.Tensor], np.ndarray] | None = None,
     region: torch.Tensor | None = None,
     hu_range: tuple[float, float] = (-1000.0, 2000.0),
+    swapped: Callable[[], np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Failure signals of an estimate ``params`` (mm/deg about the grid centre) on preprocessed tensors.
 
@@ -207,6 +238,9 @@ def assess_estimate(
             outside it prefers another pose there by design).
         hu_range: the HU window the tensors were normalized from (``[0, 1]``), for the tissue/air levels of
             :func:`tissue_on_air`.
+        swapped: instead of ``estimate``, a function returning the swapped estimate already under way (``[6]``,
+            the CT's pose in the CBCT's frame as ``estimate`` returns it), e.g. one started on
+            :func:`swap_inputs` of an earlier estimate while the caller refined it.
 
     Returns ``ncc_before``/``ncc_after`` (intensity NCC in the field of view), ``edge_ncc`` (NCC of gradient
     magnitudes), ``tissue_on_air`` (:func:`tissue_on_air` of the estimate), ``local_gain`` and ``swap_tre_mm`` (see
@@ -252,13 +286,12 @@ def assess_estimate(
     edge, best = scores[0], max(scores)
     out["edge_ncc"] = edge
     out["local_gain"] = float(best - edge)
-    if estimate is not None:
-        # the CT restricted to the CBCT's field of view as placed by the estimate: a network with a fine stage
-        # aligns only where its moving input has data, so an unmasked CT (data everywhere) against a truncated
-        # CBCT would bias the swapped estimate even when the forward one is right
-        masked_fixed = fixed_t * (fov_w > 0.5).to(fixed_t.dtype)[None]
-        swapped = estimate(masked_fixed, moving_t)
-        inv = matrix_to_params(invert_matrix(params_to_matrix(swapped, grid.center())), grid.center())
+    if swapped is not None or estimate is not None:
+        if swapped is not None:
+            twin = swapped()
+        else:
+            twin = estimate(*_masked_swap(moving_t, fixed_t, fov_w))  # type: ignore[misc]
+        inv = matrix_to_params(invert_matrix(params_to_matrix(twin, grid.center())), grid.center())
         out["swap_tre_mm"] = float(target_registration_error(params, inv, grid_points(grid, 4),
                                                              center=grid.center()))
         out["swap_params"] = np.asarray(inv, dtype=np.float64)

@@ -36,6 +36,7 @@ from monai_rigidreg.confidence import (
     assess_estimate,
     confidence_score,
     cylindrical_fov_mask,
+    swap_inputs,
 )
 from monai_rigidreg.device import resolve_device
 from monai_rigidreg.errors import InputError
@@ -80,7 +81,9 @@ class RegistrationResult:
             ``second_start``, ``native_level``, ``refine``, ``confidence``, ``resample``, ``total``; those that ran).
             The global search runs in a worker thread beside the network from the identity: ``global_search`` is
             its own duration, which overlaps ``network``, and ``global_search_wait`` the time the registration
-            waited for it afterwards.
+            waited for it afterwards. The confidence check's swapped-input estimate runs in a worker thread beside
+            the last level: ``swap_estimate`` is its own duration (overlapping ``native_level``; ``confidence``
+            includes only the wait for it).
         confidence: score in [0, 1] (see :func:`confidence_score`); ``flagged`` when below the threshold.
         flagged: likely failure: check the QC figure.
         details: network-only parameters, refinement change, similarity before/after, swap consistency, and
@@ -340,14 +343,15 @@ class RigidRegistrar:
 
     def assess(
         self, moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, params: np.ndarray, fov: torch.Tensor,
-        swap: bool = True, region: torch.Tensor | None = None,
+        swap: bool = True, region: torch.Tensor | None = None, swapped: Callable[[], np.ndarray] | None = None,
     ) -> dict[str, Any]:
         """Failure signals of ``params`` (mm/deg about the grid centre):
         :func:`~monai_rigidreg.confidence.assess_estimate` with this registrar's network as the swapped-input
         estimator (``swap=False``: without that check); ``region``: the match-region weight on ``grid`` (the edge
-        test looks there only)."""
+        test looks there only); ``swapped``: the swapped estimate already under way (its result function)."""
         estimate = (lambda m, f: self.estimate(m, f, grid)) if swap else None
-        return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate, region=region, hu_range=self.hu_range)
+        return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate, region=region, hu_range=self.hu_range,
+                               swapped=swapped if swap else None)
 
     def _image_match(self, fixed_img: sitk.Image, moving_img: sitk.Image, fov_img: sitk.Image,
                      matrices: list[np.ndarray], region: sitk.Image | None = None) -> list[float]:
@@ -514,14 +518,16 @@ class RigidRegistrar:
 
     def _confidence(self, fixed_img: sitk.Image, moving_img: sitk.Image, fov_img: sitk.Image, fov_t: torch.Tensor,
                     run: _Run, params: np.ndarray, weights: list[sitk.Image], weight_img: sitk.Image | None,
-                    roi_img: sitk.Image | None, native: bool, may_replace: bool, details: dict[str, Any]
-                    ) -> tuple[np.ndarray, bool, dict[str, Any]]:
+                    roi_img: sitk.Image | None, native: bool, may_replace: bool, details: dict[str, Any],
+                    early_swap: _Background | None = None) -> tuple[np.ndarray, bool, dict[str, Any]]:
         """The failure signals and the confidence of ``params`` (mm/deg about ``run.grid``'s centre), with the
         swapped-input check: where the swapped estimate disagrees by more than ``SWAP_AGREE_MM``, the one whose CBCT
         field of view matches the CT better (inside the match region ``weight_img``) is trusted, and a better
         swapped estimate replaces ``params`` once (``may_replace``; after its own last level when ``native``).
         ``roi_img``: the ROI's mask on the CT for the region check (:func:`~monai_rigidreg.region_check.block_shifts`;
         ``None``: no ROI, no check).
+        ``early_swap``: the swapped estimate started beside the last level (:meth:`_register`), used for the first
+        assessment (a replacement's is computed here).
         Records ``details.swap_check`` (and ``start``, ``native_level`` on a replacement). Returns ``(params,
         replaced, signals)``, ``signals["confidence"]`` included."""
         grid = run.grid
@@ -532,7 +538,8 @@ class RigidRegistrar:
             # in the frame of the winning start: its resampled CBCT and the residual of the final estimate
             to_start = invert_matrix(run.start)
             residual = matrix_to_params(to_start @ params_to_matrix(params, grid_center), grid_center)
-            signals = self.assess(run.moving_t, run.fixed_t, grid, residual, fov_t, region=region)
+            signals = self.assess(run.moving_t, run.fixed_t, grid, residual, fov_t, region=region,
+                                  swapped=None if early_swap is None or replaced else early_swap.result)
             swapped = run.start @ params_to_matrix(signals.pop("swap_params"), grid_center)
             if not signals["swap_tre_mm"] > SWAP_AGREE_MM:
                 break
@@ -668,17 +675,30 @@ class RigidRegistrar:
         grid_center = grid.center()  # params are about it until re-expressed at the end
         net_params = matrix_to_params(run.total, grid_center)
         params = net_params.copy()
+        fov_t = None
+        if refine or assess:
+            fov_t = self._on_grid(fov_img, grid, "nearest", 0.0, run.sampling)[0]
+        early_swap = None
         if native:
+            if assess and not refine:
+                # the confidence check's swapped-input estimate runs in a worker thread beside the last level: the
+                # network's many small operations keep about one core busy whatever the thread count, and the last
+                # level has the other. Its CT is masked by the field of view as the network's estimate places it
+                # (the last level moves that by a fraction of a millimetre, details.native_level.change_mm)
+                early_swap = _Background(self.estimate, *swap_inputs(run.moving_t, run.fixed_t, grid, run.residual,
+                                                                     fov_t), grid)
             t = time.perf_counter()
-            refined, details["native_level"] = self._native(fixed_img, moving_img, run.total, fov_img, weights, grid,
-                                                            region=weight_img is not None)
+            try:
+                refined, details["native_level"] = self._native(fixed_img, moving_img, run.total, fov_img, weights,
+                                                                grid, region=weight_img is not None)
+            except BaseException:
+                if early_swap is not None:
+                    early_swap.wait()  # no orphan thread left using the network
+                raise
             params = matrix_to_params(refined, grid_center)
             net_params = params.copy()
             timings["native_level"] = time.perf_counter() - t
 
-        fov_t = None
-        if refine or assess:
-            fov_t = self._on_grid(fov_img, grid, "nearest", 0.0, run.sampling)[0]
         if refine:
             def refine_from(start_params: np.ndarray) -> Any:
                 return register_sitk(fixed_img, moving_img, initial_params=start_params, center=grid_center,
@@ -712,7 +732,9 @@ class RigidRegistrar:
             roi_img = None if roi is None else weight_img if match == "soft" else match_weight(fixed_img, roi)
             params, replaced, signals = self._confidence(fixed_img, moving_img, fov_img, fov_t, run, params, weights,
                                                          weight_img, roi_img, native, staged and not refine,
-                                                         details)
+                                                         details, early_swap)
+            if early_swap is not None:
+                timings["swap_estimate"] = early_swap.seconds
             if replaced:
                 net_params = params.copy()
             timings["confidence"] = time.perf_counter() - t
@@ -767,6 +789,10 @@ class _Background:
         if self._error is not None:
             raise self._error
         return self._value
+
+    def wait(self) -> None:
+        """Wait for the worker to finish, its result or error dropped (the caller is raising its own)."""
+        self._thread.join()
 
 
 @dataclass

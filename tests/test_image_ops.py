@@ -235,6 +235,25 @@ def test_erode_gradient_magnitude_and_pyramid():
     assert pyramid(vol, grid, 1)[0] is vol
 
 
+@pytest.mark.parametrize("radius", [(1, 3, 0), (4, 4, 4), (0, 0, 2)])
+def test_erode_is_the_box_min_filter(radius):
+    """erode's sliding-window minimum equals the box min-filter (max_pool3d of the negated values, border not
+    eroded) on non-binary values, several cases and channels, anisotropic radii; gradients pass through."""
+    import torch.nn.functional as F
+
+    x = _rand(2, 3, 9, 11, 13, seed=5).requires_grad_(True)
+    ref = x.detach()
+    for axis, r in enumerate(radius):
+        if r > 0:
+            kernel = [1, 1, 1]
+            kernel[axis] = 2 * r + 1
+            ref = -F.max_pool3d(-ref, tuple(kernel), 1, tuple(k // 2 for k in kernel))
+    out = erode(x, radius)
+    assert out.shape == x.shape and torch.equal(out.detach(), ref)
+    out.sum().backward()
+    assert x.grad is not None and float(x.grad.sum()) == pytest.approx(out.numel())
+
+
 def test_masked_ncc_is_pearson_over_the_mask_and_exported_by_losses():
     assert monai_rigidreg.losses.masked_ncc is masked_ncc
     x, y = _rand(2, 1, 6, 7, 8, seed=1), _rand(2, 1, 6, 7, 8, seed=2)

@@ -492,9 +492,13 @@ def test_a_worse_swapped_estimate_does_not_count_against_a_right_one(fast_pair, 
 
     real = conf_mod.assess_estimate
 
-    def wrong_swap(moving_t, fixed_t, grid, params, fov, estimate=None, **kwargs):
-        spoiled = None if estimate is None else (lambda m, f: estimate(m, f) + np.array([0.0, 15.0, 0, 0, 0, 0]))
-        return real(moving_t, fixed_t, grid, params, fov, spoiled, **kwargs)
+    offset = np.array([0.0, 15.0, 0, 0, 0, 0])
+
+    def wrong_swap(moving_t, fixed_t, grid, params, fov, estimate=None, swapped=None, **kwargs):
+        # the swapped estimate is started beside the last level (swapped) or computed here (estimate): spoil both
+        assert swapped is not None  # the default path starts it early
+        spoiled = None if estimate is None else (lambda m, f: estimate(m, f) + offset)
+        return real(moving_t, fixed_t, grid, params, fov, spoiled, swapped=lambda: swapped() + offset, **kwargs)
 
     monkeypatch.setattr("monai_rigidreg.registration.assess_estimate", wrong_swap)
     res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
@@ -538,6 +542,30 @@ def test_a_replacing_twin_that_disagrees_with_its_own_twin_is_flagged(fast_pair,
     assert res.details["signals"]["swap_counted"] is True
     assert _fast_pair_tre(fast_pair, res) < 2.0  # the estimate itself is right; the flag says it is unsettled
     assert res.flagged
+
+
+def test_swapped_estimate_started_early_gives_the_same_signals(fast_pair, shipped_registrar):
+    """swap_inputs builds exactly what assess_estimate hands its estimator (the CT masked by the field of view as
+    the estimate places it): a swapped estimate computed from them ahead of time gives the same signals; one from
+    inputs masked by another estimate (12 mm away) gives a different twin."""
+    from monai_rigidreg.confidence import swap_inputs
+
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    grid = shipped_registrar.network_grid(fixed)
+    f_t = shipped_registrar.preprocess(fixed, grid)
+    m_t = shipped_registrar.preprocess(moving, grid)
+    fov = torch.zeros_like(f_t[0])
+    n = grid.size[0]
+    fov[n // 6: n - n // 6, n // 6: n - n // 6] = 1.0  # a truncated view: the mask placement matters
+    p = np.asarray(MOTION, dtype=np.float64)
+    inline = shipped_registrar.assess(m_t, f_t, grid, p, fov)
+    twin = shipped_registrar.estimate(*swap_inputs(m_t, f_t, grid, p, fov), grid)
+    early = shipped_registrar.assess(m_t, f_t, grid, p, fov, swapped=lambda: twin)
+    for key in ("swap_tre_mm", "local_gain", "edge_ncc", "tissue_on_air"):
+        assert early[key] == inline[key], key
+    np.testing.assert_array_equal(early["swap_params"], inline["swap_params"])
+    other = shipped_registrar.estimate(*swap_inputs(m_t, f_t, grid, p + np.array([12.0, 0, 0, 0, 0, 0]), fov), grid)
+    assert not np.allclose(other, twin, atol=1e-3)
 
 
 def test_edge_test_looks_inside_the_match_region_only(pair, small_registrar):
