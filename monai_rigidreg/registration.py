@@ -686,7 +686,7 @@ class RigidRegistrar:
                 # level has the other. Its CT is masked by the field of view as the network's estimate places it
                 # (the last level moves that by a fraction of a millimetre, details.native_level.change_mm)
                 early_swap = _Background(self.estimate, *swap_inputs(run.moving_t, run.fixed_t, grid, run.residual,
-                                                                     fov_t), grid)
+                                                                     fov_t), grid, thread_name="monai-rigidreg-swap")
             t = time.perf_counter()
             try:
                 refined, details["native_level"] = self._native(fixed_img, moving_img, run.total, fov_img, weights,
@@ -766,9 +766,12 @@ class _Background:
     exception. PyTorch and SimpleITK release the GIL in their kernels, so the global search's FFTs and sampling run
     while the main thread runs the network from the identity: on the ``bench_speed.py`` pairs the in-process median
     1.81 -> 1.56 s, beside a busy loop 2.32 -> 2.06 s, beside a second registration 2.46 -> 2.38 s
-    (``bench_speed_0.4.6_*``)."""
+    (``bench_speed_0.4.6_*``). Since 0.4.7 the confidence check's swapped-input network run goes beside the last level
+    the same way (thread ``monai-rigidreg-swap``; in-process 1.64 -> 1.43 s, ``bench_speed_0.4.7_2026-12-03.txt``).
+    torch's intra-op thread count carries over to the worker thread."""
 
-    def __init__(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> None:
+    def __init__(self, fn: Callable[..., Any], *args: Any, thread_name: str = "monai-rigidreg-search",
+                 **kwargs: Any) -> None:
         self._value: Any = None
         self._error: BaseException | None = None
         self.seconds = 0.0  # how long fn ran
@@ -781,7 +784,7 @@ class _Background:
                 self._error = exc
             self.seconds = time.perf_counter() - t
 
-        self._thread = threading.Thread(target=run, name="monai-rigidreg-search", daemon=True)
+        self._thread = threading.Thread(target=run, name=thread_name, daemon=True)
         self._thread.start()
 
     def result(self) -> Any:

@@ -357,6 +357,27 @@ def _last_level_spoiled_once(real):
     return spoiled_once, calls
 
 
+def test_a_failing_last_level_leaves_no_swap_thread_running(fast_pair, shipped_registrar, monkeypatch):
+    """The swapped-input estimate runs in a worker thread beside the last level: when the last level raises, the
+    error reaches the caller and the worker has finished (no thread left using the network); the next registration
+    runs normally and records the swapped estimate's own time."""
+    import threading
+
+    import monai_rigidreg.registration as reg_mod
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("last level broke")
+
+    with monkeypatch.context() as m:
+        m.setattr(reg_mod, "refine_native", broken)
+        with pytest.raises(RuntimeError, match="last level broke"):
+            shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    assert not [t for t in threading.enumerate() if t.name == "monai-rigidreg-swap"]
+    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    assert res.timings["swap_estimate"] > 0 and "swap_tre_mm" in res.details["signals"]
+    assert _fast_pair_tre(fast_pair, res) < 2.0
+
+
 def test_starts_run_in_one_batch_give_each_starts_own_estimate(fast_pair, shipped_registrar):
     """The global search's candidates go through the network as one batch (RigidRegistrar._runs_from): each start's
     grid, tensors and total are its own, and its estimate that of the start run alone (the fine stage's early stop,
