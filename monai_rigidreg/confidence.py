@@ -244,9 +244,9 @@ def assess_estimate(
 
     Returns ``ncc_before``/``ncc_after`` (intensity NCC in the field of view), ``edge_ncc`` (NCC of gradient
     magnitudes), ``tissue_on_air`` (:func:`tissue_on_air` of the estimate), ``local_gain`` and ``swap_tre_mm`` (see
-    :func:`confidence_score`), ``confidence``, and with
-    ``estimate`` also ``swap_params``: the inverse of the swapped estimate, ``[6]`` numpy, in the frame of
-    ``params`` (the caller may score it as an alternative estimate, :data:`SWAP_AGREE_MM`).
+    :func:`confidence_score`), ``confidence``, and with ``estimate`` or ``swapped`` also ``swap_params``: the
+    inverse of the swapped estimate, ``[6]`` numpy, in the frame of ``params`` (the caller may score it as an
+    alternative estimate, :data:`SWAP_AGREE_MM`).
     """
     p0 = np.asarray(params, dtype=np.float64)
     # edges are compared at about 4 mm (the grid pooled by ``factor``), where the gain threshold was calibrated:

@@ -256,6 +256,7 @@ class RigidRegistrar:
         self.accepts_weight = "fixed_weight" in inspect.signature(self.network.forward).parameters
         # one registration at a time per registrar: fine_stage_switch changes the shared network's setting
         self._lock = threading.RLock()
+        self._workers: list[_Background] = []  # this call's worker threads: all joined before __call__ returns
         self._bodies = BodyMaskCache()  # the CT's body mask, computed once per planning CT
         self.source: dict[str, Any] = {}  # the bundle and weights it came from (from_bundle), for the audit trail
         self.antialias = True  # as ResampleToNetworkGrid's default, the training preprocessing
@@ -415,8 +416,16 @@ class RigidRegistrar:
                 global_init = self.global_init and fine_stage is not False
             if fine_stage is False:  # the learned network alone sees the inputs as they are (no couch removal)
                 keep_couch = True
-            result = self._register(fixed, moving, refine, cascade_steps, resample_moving, moving_fov, assess,
-                                    bool(global_init), roi, match, keep_couch)
+            self._workers = []
+            try:
+                result = self._register(fixed, moving, refine, cascade_steps, resample_moving, moving_fov, assess,
+                                        bool(global_init), roi, match, keep_couch)
+            finally:
+                # whatever raised, no worker is left using the network after the lock and the fine-stage setting
+                # are released (a worker's own error is dropped here: the caller gets the first one raised)
+                for worker in self._workers:
+                    worker.wait()
+                self._workers = []
             used = getattr(self.network, "fine_stage", None) is not None and getattr(
                 self.network, "fine_stage_enabled", True)
         result.details["fine_stage"] = bool(used)
@@ -648,6 +657,7 @@ class RigidRegistrar:
         if global_init:  # the search needs no network estimate: it runs beside the network from the identity
             searching = _Background(global_search, fixed_img, moving_img, fov_img, hu_range=self.hu_range,
                                     fixed_body=body, **self.search_settings)
+            self._workers.append(searching)
         run = self._run_from(fixed_img, moving_img, np.eye(4), cascade_steps, pose_weights, timings, body)
         details: dict[str, Any] = {"network_params": {},
                                    "cascade_steps": self.cascade_steps if cascade_steps is None else cascade_steps,
@@ -683,21 +693,24 @@ class RigidRegistrar:
             if assess and not refine:
                 # the confidence check's swapped-input estimate runs in a worker thread beside the last level: the
                 # network's many small operations keep about one core busy whatever the thread count, and the last
-                # level has the other. Its CT is masked by the field of view as the network's estimate places it
-                # (the last level moves that by a fraction of a millimetre, details.native_level.change_mm)
+                # level has the other. Its CT is masked by the field of view as the network's estimate places it;
+                # where the last level moves the estimate by more than EARLY_SWAP_MAX_CHANGE_MM, that mask is stale
+                # and the twin is computed again after it, from the refined estimate (as before 0.4.7)
                 early_swap = _Background(self.estimate, *swap_inputs(run.moving_t, run.fixed_t, grid, run.residual,
                                                                      fov_t), grid, thread_name="monai-rigidreg-swap")
+                self._workers.append(early_swap)
             t = time.perf_counter()
-            try:
-                refined, details["native_level"] = self._native(fixed_img, moving_img, run.total, fov_img, weights,
-                                                                grid, region=weight_img is not None)
-            except BaseException:
-                if early_swap is not None:
-                    early_swap.wait()  # no orphan thread left using the network
-                raise
+            refined, details["native_level"] = self._native(fixed_img, moving_img, run.total, fov_img, weights, grid,
+                                                            region=weight_img is not None)
             params = matrix_to_params(refined, grid_center)
             net_params = params.copy()
             timings["native_level"] = time.perf_counter() - t
+            if early_swap is not None:
+                stale = details["native_level"]["change_mm"] > EARLY_SWAP_MAX_CHANGE_MM
+                details["swap_estimate"] = "after the last level" if stale else "beside the last level"
+                if stale:
+                    early_swap.wait()
+                    early_swap = None
 
         if refine:
             def refine_from(start_params: np.ndarray) -> Any:
@@ -814,6 +827,14 @@ class _Run:
     def sampling(self) -> np.ndarray | None:
         """The matrix the CBCT was sampled through onto ``grid`` (``None`` for the identity start)."""
         return None if np.allclose(self.start, np.eye(4)) else self.start
+
+
+EARLY_SWAP_MAX_CHANGE_MM = 1.0
+"""The confidence check's swapped-input estimate, started beside the last level with the CT masked by the field of
+view as the network's estimate places it, is used when the last level moved that estimate by at most this (mm,
+``details.native_level.change_mm``, the mean over the network grid's points); beyond it the twin is computed again
+from the refined estimate (``details.swap_estimate``: ``"beside the last level"`` or ``"after the last level"``).
+On the clinical-geometry pairs the last level moves a converged estimate by a few tenths of a millimetre."""
 
 
 SAME_POSE_MM = 2.0

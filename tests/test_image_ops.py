@@ -235,23 +235,31 @@ def test_erode_gradient_magnitude_and_pyramid():
     assert pyramid(vol, grid, 1)[0] is vol
 
 
-@pytest.mark.parametrize("radius", [(1, 3, 0), (4, 4, 4), (0, 0, 2)])
-def test_erode_is_the_box_min_filter(radius):
-    """erode's sliding-window minimum equals the box min-filter (max_pool3d of the negated values, border not
-    eroded) on non-binary values, several cases and channels, anisotropic radii; gradients pass through."""
+def _box_min_reference(x, radius):
+    """The box min-filter as max_pool3d of the negated values (voxels outside the volume do not count)."""
     import torch.nn.functional as F
 
-    x = _rand(2, 3, 9, 11, 13, seed=5).requires_grad_(True)
-    ref = x.detach()
     for axis, r in enumerate(radius):
         if r > 0:
             kernel = [1, 1, 1]
             kernel[axis] = 2 * r + 1
-            ref = -F.max_pool3d(-ref, tuple(kernel), 1, tuple(k // 2 for k in kernel))
+            x = -F.max_pool3d(-x, tuple(kernel), 1, tuple(k // 2 for k in kernel))
+    return x
+
+
+@pytest.mark.parametrize("radius", [(1, 3, 0), (4, 4, 4), (0, 0, 2)])
+def test_erode_is_the_box_min_filter(radius):
+    """erode's sliding-window minimum equals the box min-filter (max_pool3d of the negated values, border not
+    eroded) on non-binary values, several cases and channels, anisotropic radii, float and integer dtypes (an int64
+    pad value must not wrap at the border); gradients pass through."""
+    x = _rand(2, 3, 9, 11, 13, seed=5).requires_grad_(True)
     out = erode(x, radius)
-    assert out.shape == x.shape and torch.equal(out.detach(), ref)
+    assert out.shape == x.shape and torch.equal(out.detach(), _box_min_reference(x.detach(), radius))
     out.sum().backward()
     assert x.grad is not None and float(x.grad.sum()) == pytest.approx(out.numel())
+    for dtype in (torch.int64, torch.uint8, torch.float64):
+        levels = (x.detach() * 200).to(dtype)
+        assert torch.equal(erode(levels, radius), _box_min_reference(levels.double(), radius).to(dtype))
 
 
 def test_masked_ncc_is_pearson_over_the_mask_and_exported_by_losses():

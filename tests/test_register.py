@@ -357,25 +357,53 @@ def _last_level_spoiled_once(real):
     return spoiled_once, calls
 
 
-def test_a_failing_last_level_leaves_no_swap_thread_running(fast_pair, shipped_registrar, monkeypatch):
-    """The swapped-input estimate runs in a worker thread beside the last level: when the last level raises, the
-    error reaches the caller and the worker has finished (no thread left using the network); the next registration
-    runs normally and records the swapped estimate's own time."""
+@pytest.mark.parametrize("broken", ["refine_native", "assess_estimate", "global_search"])
+def test_a_failing_stage_leaves_no_worker_thread_running(fast_pair, shipped_registrar, monkeypatch, broken):
+    """The global search and the swapped-input estimate run in worker threads: when a stage raises (the last level,
+    the confidence check before it takes the twin, the search itself), the error reaches the caller and every
+    worker has finished (none left using the network); the next registration runs normally."""
     import threading
 
     import monai_rigidreg.registration as reg_mod
 
-    def broken(*args, **kwargs):
-        raise RuntimeError("last level broke")
+    def failing(*args, **kwargs):
+        raise RuntimeError(f"{broken} broke")
 
     with monkeypatch.context() as m:
-        m.setattr(reg_mod, "refine_native", broken)
-        with pytest.raises(RuntimeError, match="last level broke"):
-            shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
-    assert not [t for t in threading.enumerate() if t.name == "monai-rigidreg-swap"]
+        m.setattr(reg_mod, broken, failing)
+        with pytest.raises(RuntimeError, match=f"{broken} broke"):
+            shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False)
+    assert not [t for t in threading.enumerate() if t.name.startswith("monai-rigidreg-")]
     res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
     assert res.timings["swap_estimate"] > 0 and "swap_tre_mm" in res.details["signals"]
+    assert res.details["swap_estimate"] == "beside the last level"
     assert _fast_pair_tre(fast_pair, res) < 2.0
+
+
+def test_a_stale_early_twin_is_computed_again_after_the_last_level(fast_pair, shipped_registrar, monkeypatch):
+    """Where the last level moves the estimate by more than EARLY_SWAP_MAX_CHANGE_MM, the twin started beside it
+    (its CT masked for the network's estimate) is dropped and the confidence check computes its own from the refined
+    estimate: the same signals as a registration that never started one early."""
+    import monai_rigidreg.registration as reg_mod
+
+    real = reg_mod.assess_estimate
+    seen = []
+
+    def spy(*args, swapped=None, **kwargs):
+        seen.append(swapped is not None)
+        return real(*args, swapped=swapped, **kwargs)
+
+    monkeypatch.setattr(reg_mod, "assess_estimate", spy)
+    monkeypatch.setattr(reg_mod, "EARLY_SWAP_MAX_CHANGE_MM", -1.0)  # every change counts as stale
+    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    assert seen == [False] and res.details["swap_estimate"] == "after the last level"
+    assert "swap_estimate" not in res.timings
+    monkeypatch.setattr(reg_mod, "EARLY_SWAP_MAX_CHANGE_MM", 1e9)
+    early = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    assert seen == [False, True] and early.details["swap_estimate"] == "beside the last level"
+    # the last level moved this estimate by a fraction of a millimetre: both twins agree with it alike
+    assert abs(early.details["signals"]["swap_tre_mm"] - res.details["signals"]["swap_tre_mm"]) < 0.2
+    assert early.details["native_level"]["change_mm"] < reg_mod.EARLY_SWAP_MAX_CHANGE_MM
 
 
 def test_starts_run_in_one_batch_give_each_starts_own_estimate(fast_pair, shipped_registrar):
