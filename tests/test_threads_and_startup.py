@@ -87,3 +87,36 @@ def test_command_detection_skips_global_options():
     assert _command_in(["-v", "register", "--fixed", "x"]) == "register"
     assert _command_in(["--version"]) is None
     assert _command_in(["nonsense", "register"]) is None  # argparse reports the bad command
+
+
+def test_console_script_ends_register_promptly_with_complete_outputs_and_its_exit_code(fast_pair, tmp_path):
+    """The console script (``python -m monai_rigidreg.cli``, as the installed ``monai-rigidreg``) ends ``register``
+    with ``os._exit`` (no interpreter teardown: no atexit handler runs) after flushing: the outputs are complete,
+    the printed listing is whole, and the exit code is the command's (2 for a bad input, whose message arrives);
+    ``MONAI_RIGIDREG_FULL_EXIT=1`` and other commands exit normally (atexit handlers run)."""
+    import json
+
+    import SimpleITK as sitk_
+
+    hook = "import atexit; atexit.register(lambda: print('ATEXIT', flush=True)); "
+    run = "from monai_rigidreg.cli import console; console()"
+    out = tmp_path / "out"
+    env = {k: v for k, v in os.environ.items() if k != "MONAI_RIGIDREG_FULL_EXIT"}
+    argv = ["register", "--fixed", str(fast_pair["fixed"]), "--moving", str(fast_pair["moving"]), "--output-dir",
+            str(out), "--threads", "2"]
+    done = subprocess.run([sys.executable, "-c", hook + run, *argv], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr
+    assert "ATEXIT" not in done.stdout and "result.json" in done.stdout and "qc.png" in done.stdout
+    assert json.loads((out / "result.json").read_text())["params"]
+    fixed_size = sitk_.ReadImage(str(fast_pair["fixed"])).GetSize()
+    assert sitk_.ReadImage(str(out / "registered.nii.gz")).GetSize() == fixed_size
+    bad = subprocess.run([sys.executable, "-c", hook + run, "register", "--fixed", str(tmp_path / "missing.nii.gz"),
+                          "--moving", str(fast_pair["moving"]), "--output-dir", str(tmp_path / "o2")],
+                         capture_output=True, text=True, env=env)
+    assert bad.returncode == 2 and "missing.nii.gz" in bad.stderr and "ATEXIT" not in bad.stdout
+    full = subprocess.run([sys.executable, "-c", hook + run, "register", "--fixed", str(tmp_path / "missing.nii.gz"),
+                           "--moving", str(fast_pair["moving"]), "--output-dir", str(tmp_path / "o3")],
+                          capture_output=True, text=True, env={**env, "MONAI_RIGIDREG_FULL_EXIT": "1"})
+    assert full.returncode == 2 and "ATEXIT" in full.stdout
+    version = subprocess.run([sys.executable, "-c", hook + run, "--version"], capture_output=True, text=True, env=env)
+    assert version.returncode == 0 and "ATEXIT" in version.stdout
