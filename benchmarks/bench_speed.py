@@ -10,7 +10,8 @@ Printed, each with the command or call it times:
 1. **start-up**: wall time of fresh Python processes that import torch, MONAI, the registration stack, and of
    ``monai-rigidreg register --help`` (the floor under any command-line registration);
 2. **command line**: ``monai-rigidreg register`` on one pair, default outputs (``.tfm``, resampled CBCT, QC figure,
-   ``result.json``, DICOM-free), and with ``--no-qc``; next to an equivalent elastix command (a Python process
+   ``result.json``, DICOM-free), with ``--no-qc``, and with ``MONAI_RIGIDREG_FULL_EXIT=1`` (the interpreter's
+   normal teardown instead of the console script's prompt exit); next to an equivalent elastix command (a Python process
    that imports itk-elastix, reads the pair, registers with elastix's default rigid map and writes the resampled
    CBCT);
 3. **in-process**: the registrar loaded once, volumes in memory, the default path with its confidence check
