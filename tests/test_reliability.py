@@ -248,6 +248,40 @@ def test_overwrite_replaces_the_old_folder_only_once_the_new_one_is_complete(res
     assert listing(tmp_path) == sorted(["out", *(f"out/{n}" for n in old)])  # no aside or temporary folder left
 
 
+def test_a_failing_volume_write_in_its_worker_leaves_nothing(result, tmp_path, monkeypatch):
+    """registered.nii.gz is written in a worker thread while the QC figure is drawn: its failure reaches the caller
+    after the figure, and no output or temporary folder is left; the figure's own failure waits for the worker."""
+    res, fixed, moving = result
+    out = tmp_path / "out"
+    drawn = []
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    real_qc = outputs.qc_figure
+    monkeypatch.setattr(outputs, "save_volume", disk_full)
+    monkeypatch.setattr(outputs, "qc_figure", lambda *a, **k: (drawn.append(1), real_qc(*a, **k)))
+    with pytest.raises(OSError, match="No space left"):
+        write_outputs(res, fixed, moving, out)
+    assert drawn == [1] and listing(tmp_path) == []
+    written = []
+
+    def slow_save(image, path):
+        import time
+
+        time.sleep(0.3)
+        written.append(path.name)
+
+    def qc_fails(*args, **kwargs):
+        raise RuntimeError("figure failed")
+
+    monkeypatch.setattr(outputs, "save_volume", slow_save)
+    monkeypatch.setattr(outputs, "qc_figure", qc_fails)
+    with pytest.raises(RuntimeError, match="figure failed"):
+        write_outputs(res, fixed, moving, out)
+    assert written == ["registered.nii.gz"] and listing(tmp_path) == []  # joined before the folder was removed
+
+
 @pytest.mark.parametrize("how", ["sigterm", "ctrl-c"])
 def test_sigterm_or_ctrl_c_during_register_leaves_nothing(pair, tmp_path, with_small_network, monkeypatch, capsys,
                                                           how):
