@@ -1,6 +1,7 @@
 """The default path's worker threads (the global search beside the network from the identity, the swapped-input
 estimate beside the last level) against the same path with each worker run in line (synchronously), on a quiet
-machine and beside one single-threaded busy loop.
+machine and beside one single-threaded busy loop; and, beside the busy loop, the registrar's adaptive thread count
+(``adapt_threads``, the default: one per core less the cores other work keeps busy) against fixed counts.
 
 Prints the median seconds per case of each, registrar loaded once, volumes in memory, on the ``bench_speed.py``
 pairs (``bench_out/speed``; run ``python benchmarks/bench_speed.py`` first to create them) and their thorax CT. The
@@ -98,6 +99,30 @@ def main() -> None:
             if busy is not None:
                 busy.kill()
         print(f"{condition:34s} {np.median(times['threads']):17.2f} {np.median(times['in line']):10.2f}")
+
+    print(f"\nbeside a busy loop, worker threads on: {'threads':34s} {'s / case':>9s}")
+    cores = torch.get_num_threads()
+    variants = [("adaptive (default)", cores, True)] + [(f"fixed {n}", n, False) for n in range(cores, 0, -1)]
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    time.sleep(1.0)
+    per: dict[str, list[float]] = {name: [] for name, _, _ in variants}
+    try:
+        for _ in range(args.repeats):
+            for name, n, adapt in variants:
+                torch.set_num_threads(n)
+                sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(n)
+                registrar.adapt_threads = adapt
+                for cbct in cbcts:
+                    t = time.perf_counter()
+                    registrar(ct, cbct, resample_moving=False)
+                    per[name].append(time.perf_counter() - t)
+    finally:
+        busy.kill()
+        torch.set_num_threads(cores)
+        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(cores)
+        registrar.adapt_threads = True
+    for name, _, _ in variants:
+        print(f"{'':39s}{name:34s} {np.median(per[name]):9.2f}")
 
 
 if __name__ == "__main__":

@@ -9,12 +9,15 @@ package is imported, see ``monai_rigidreg/__init__.py``).
 
 from __future__ import annotations
 
+import os
+import time
+
 import SimpleITK as sitk
 import torch
 
 from monai_rigidreg.errors import InputError
 
-__all__ = ["resolve_device", "set_cpu_threads"]
+__all__ = ["resolve_device", "set_cpu_threads", "busy_cores", "adaptive_threads"]
 
 
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
@@ -53,3 +56,43 @@ def set_cpu_threads(threads: int | None) -> int:
     torch.set_num_threads(int(threads))
     sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(int(threads))
     return torch.get_num_threads()
+
+
+def _runnable_tasks() -> int | None:
+    """Runnable tasks on the machine now (the fourth field of ``/proc/loadavg``, ``running/total``), the caller's own
+    thread included; ``None`` where the file is missing (not Linux)."""
+    try:
+        with open("/proc/loadavg", encoding="ascii") as f:
+            return int(f.read().split()[3].split("/")[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def busy_cores(samples: int = 3, interval_s: float = 0.002) -> int | None:
+    """How many cores other work keeps busy right now: the fewest runnable tasks over ``samples`` reads of
+    ``/proc/loadavg`` ``interval_s`` apart, less the calling thread (a momentary task is not counted; a process that
+    computes all along, such as a busy loop or another registration, is). ``None`` where this cannot be read."""
+    counts = []
+    for k in range(samples):
+        if k:
+            time.sleep(interval_s)
+        n = _runnable_tasks()
+        if n is None:
+            return None
+        counts.append(n)
+    return max(0, min(counts) - 1)
+
+
+def adaptive_threads(current: int) -> int:
+    """The intra-op thread count for work starting now: ``current`` less the cores other work keeps busy
+    (:func:`busy_cores`), at least 1; ``current`` where that cannot be read.
+
+    Why: on 2 cores beside a single-threaded busy loop a registration took 1.82 s per case with one thread against
+    1.94 s with two (the second thread waits for a core at every parallel region), while on a quiet machine two are
+    faster (``benchmarks/bench_worker_threads.py``, its thread-count table).
+    """
+    busy = busy_cores()
+    if busy is None:
+        return current
+    available = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(int(current), available - busy))

@@ -30,8 +30,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--refine", action="store_true", help="polish with SimpleITK Mattes MI (masked to the CBCT FOV)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--threads", type=int, default=None, metavar="N",
-                   help="CPU threads for torch and SimpleITK (default: one per core; 1 on a machine busy with "
-                        "other work)")
+                   help="CPU threads for torch and SimpleITK (default: one per core, less the cores other work keeps "
+                        "busy as each registration starts; 1 on a machine busy with other work)")
     p.add_argument("--bundle", type=Path, default=None, help="MONAI bundle directory (default: the shipped one)")
     p.add_argument("--cascade-steps", type=int, default=None, help="network applications (default: bundle's)")
     p.add_argument("--fixed-series-uid", default=None, help="DICOM series UID of the CT (default: largest)")
@@ -116,6 +116,7 @@ def _load_registrar(args: argparse.Namespace, registrar_cls: Any) -> Any:
     set_cpu_threads(args.threads)
     registrar = registrar_cls.from_bundle(args.bundle, device=args.device)
     registrar.native_level = registrar.native_level and not args.no_native_level
+    registrar.adapt_threads = args.threads is None  # --threads N: exactly N
     return registrar
 
 

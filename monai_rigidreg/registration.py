@@ -38,7 +38,7 @@ from monai_rigidreg.confidence import (
     cylindrical_fov_mask,
     swap_inputs,
 )
-from monai_rigidreg.device import resolve_device
+from monai_rigidreg.device import adaptive_threads, resolve_device
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import (
     LPS_TO_RAS,
@@ -193,6 +193,11 @@ class RigidRegistrar:
             on 19 of 19 pairs in each set (``python benchmarks/bench_native_bias.py --highpass-sigmas 16 4``,
             ``bench_native_highpass_*``).
 
+    ``adapt_threads`` (attribute, default ``True``): on the CPU each call runs with torch's and SimpleITK's thread
+    counts lowered by the cores other work keeps busy as it starts (:func:`~monai_rigidreg.device.adaptive_threads`;
+    beside a busy loop on 2 cores, one thread is faster than two) and restored afterwards; ``details["cpu_threads"]``
+    records the count used. ``False`` keeps the counts as set (``monai-rigidreg register --threads N`` does).
+
     Build it once and reuse it: ``registrar = RigidRegistrar.from_bundle()`` then
     ``monai_rigidreg.register(ct, cbct, model=registrar)`` (or ``registrar(ct, cbct)``).
     """
@@ -257,6 +262,7 @@ class RigidRegistrar:
         # one registration at a time per registrar: fine_stage_switch changes the shared network's setting
         self._lock = threading.RLock()
         self._workers: list[_Background] = []  # this call's worker threads: all joined before __call__ returns
+        self.adapt_threads = True
         self._bodies = BodyMaskCache()  # the CT's body mask, computed once per planning CT
         self.source: dict[str, Any] = {}  # the bundle and weights it came from (from_bundle), for the audit trail
         self.antialias = True  # as ResampleToNetworkGrid's default, the training preprocessing
@@ -411,7 +417,7 @@ class RigidRegistrar:
         """Register ``moving`` (CBCT) to ``fixed`` (CT); see :func:`register` (``fine_stage=False``: the learned
         regression alone, also in the confidence check's swapped-input estimate, and no global search; ``None``:
         as the network is configured, e.g. by the bundle's ``fine_stage``)."""
-        with self._lock, fine_stage_switch(self.network, fine_stage):
+        with self._lock, fine_stage_switch(self.network, fine_stage), self._cpu_threads() as threads:
             if global_init is None:
                 global_init = self.global_init and fine_stage is not False
             if fine_stage is False:  # the learned network alone sees the inputs as they are (no couch removal)
@@ -429,7 +435,30 @@ class RigidRegistrar:
             used = getattr(self.network, "fine_stage", None) is not None and getattr(
                 self.network, "fine_stage_enabled", True)
         result.details["fine_stage"] = bool(used)
+        if threads is not None:
+            result.details["cpu_threads"] = threads
         return result
+
+    @contextlib.contextmanager
+    def _cpu_threads(self) -> Iterator[int | None]:
+        """torch's and SimpleITK's thread counts for one call (``adapt_threads``), restored on exit; yields the torch
+        count in use on the CPU, ``None`` on another device."""
+        if self.device.type != "cpu":
+            yield None
+            return
+        current = torch.get_num_threads()
+        n = adaptive_threads(current) if self.adapt_threads else current
+        if n >= current:
+            yield current
+            return
+        itk = sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
+        torch.set_num_threads(n)
+        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(n)
+        try:
+            yield n
+        finally:
+            torch.set_num_threads(current)
+            sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(itk)
 
     def _start_tensors(self, fixed_img: sitk.Image, moving_img: sitk.Image, start: np.ndarray,
                        body: sitk.Image | None = None) -> tuple[Grid, torch.Tensor, torch.Tensor]:

@@ -406,6 +406,41 @@ def test_a_stale_early_twin_is_computed_again_after_the_last_level(fast_pair, sh
     assert early.details["native_level"]["change_mm"] < reg_mod.EARLY_SWAP_MAX_CHANGE_MM
 
 
+def test_registrar_lowers_its_threads_while_other_work_is_busy_and_restores_them(fast_pair, shipped_registrar,
+                                                                                monkeypatch):
+    """adapt_threads: a call starting while other work keeps cores busy runs with fewer torch and SimpleITK threads
+    (its worker threads too) and restores the caller's counts afterwards; details.cpu_threads says how many;
+    adapt_threads=False (``--threads N``) keeps the counts as set."""
+    import SimpleITK as sitk_
+
+    import monai_rigidreg.registration as reg_mod
+
+    seen = []
+    real_native = reg_mod.refine_native
+
+    def watching(*args, **kwargs):
+        seen.append((torch.get_num_threads(), sitk_.ProcessObject.GetGlobalDefaultNumberOfThreads()))
+        return real_native(*args, **kwargs)
+
+    torch_before, itk_before = torch.get_num_threads(), sitk_.ProcessObject.GetGlobalDefaultNumberOfThreads()
+    monkeypatch.setattr(reg_mod, "refine_native", watching)
+    monkeypatch.setattr(reg_mod, "adaptive_threads", lambda current: 1)  # as if other work kept the rest busy
+    try:
+        torch.set_num_threads(2)
+        sitk_.ProcessObject.SetGlobalDefaultNumberOfThreads(2)
+        res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+        assert res.details["cpu_threads"] == 1 and seen == [(1, 1)]
+        assert torch.get_num_threads() == 2 and sitk_.ProcessObject.GetGlobalDefaultNumberOfThreads() == 2
+        assert _fast_pair_tre(fast_pair, res) < 2.0
+        shipped_registrar.adapt_threads = False
+        res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+        assert res.details["cpu_threads"] == 2 and seen[-1] == (2, 2)
+    finally:
+        shipped_registrar.adapt_threads = True
+        torch.set_num_threads(torch_before)
+        sitk_.ProcessObject.SetGlobalDefaultNumberOfThreads(itk_before)
+
+
 def test_starts_run_in_one_batch_give_each_starts_own_estimate(fast_pair, shipped_registrar):
     """The global search's candidates go through the network as one batch (RigidRegistrar._runs_from): each start's
     grid, tensors and total are its own, and its estimate that of the start run alone (the fine stage's early stop,

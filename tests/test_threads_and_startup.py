@@ -75,6 +75,7 @@ def test_register_command_runs_without_importing_monai(fast_pair, tmp_path):
             "'sympy' in sys.modules)")
     assert _python(code).splitlines()[-1] == "0 [] False"  # the command prints its result first
     result = json.loads((out / "result.json").read_text())
+    assert result["details"]["cpu_threads"] == 2  # --threads 2: exactly 2, whatever else runs (no adapting)
     assert {"registered.nii.gz", "qc.png", "transform.tfm"} <= {p.name for p in out.iterdir()}
     est = [result["params"][k] for k in ("tx", "ty", "tz", "rx", "ry", "rz")]
     assert max(abs(a - b) for a, b in zip(est[:3], KNOWN_MOTION[:3])) < 1.5
@@ -120,3 +121,34 @@ def test_console_script_ends_register_promptly_with_complete_outputs_and_its_exi
     assert full.returncode == 2 and "ATEXIT" in full.stdout
     version = subprocess.run([sys.executable, "-c", hook + run, "--version"], capture_output=True, text=True, env=env)
     assert version.returncode == 0 and "ATEXIT" in version.stdout
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/loadavg"), reason="busy_cores reads /proc/loadavg (Linux)")
+def test_busy_cores_sees_a_busy_loop_and_adaptive_threads_leaves_it_its_core():
+    """A process computing all along (a busy loop) keeps a core busy: busy_cores counts it in every reading and
+    adaptive_threads leaves it that core (at least one thread always); the reading ends when the loop does."""
+    from monai_rigidreg.device import adaptive_threads, busy_cores
+
+    available = len(os.sched_getaffinity(0))
+    loop = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        import time
+
+        time.sleep(0.5)
+        readings = [busy_cores() for _ in range(5)]
+        assert min(readings) >= 1
+        assert adaptive_threads(64) <= max(1, available - 1)
+        assert adaptive_threads(1) == 1
+    finally:
+        loop.kill()
+        loop.wait()
+
+
+def test_adaptive_threads_without_a_reading_keeps_the_count(monkeypatch):
+    import monai_rigidreg.device as device
+
+    monkeypatch.setattr(device, "_runnable_tasks", lambda: None)
+    assert device.busy_cores() is None and device.adaptive_threads(3) == 3
+    counts = iter([5, 2, 4])  # the fewest of the readings, less the caller's own thread
+    monkeypatch.setattr(device, "_runnable_tasks", lambda: next(counts))
+    assert device.busy_cores(samples=3, interval_s=0.0) == 1
