@@ -55,6 +55,16 @@ class InLine:
         return None
 
 
+def seconds_per_case(registrar: Any, ct: sitk.Image, cbcts: list[sitk.Image]) -> list[float]:
+    """Wall seconds of one registration per CBCT (no resampled output)."""
+    out = []
+    for cbct in cbcts:
+        t = time.perf_counter()
+        registrar(ct, cbct, resample_moving=False)
+        out.append(time.perf_counter() - t)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pairs", type=Path, default=Path("bench_out/speed"))
@@ -90,10 +100,7 @@ def main() -> None:
             for _ in range(args.repeats):
                 for name, cls in (("threads", threaded), ("in line", InLine)):
                     reg_mod._Background = cls
-                    for cbct in cbcts:
-                        t = time.perf_counter()
-                        registrar(ct, cbct, resample_moving=False)
-                        times[name].append(time.perf_counter() - t)
+                    times[name] += seconds_per_case(registrar, ct, cbcts)
         finally:
             reg_mod._Background = threaded
             if busy is not None:
@@ -112,10 +119,7 @@ def main() -> None:
                 torch.set_num_threads(n)
                 sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(n)
                 registrar.adapt_threads = adapt
-                for cbct in cbcts:
-                    t = time.perf_counter()
-                    registrar(ct, cbct, resample_moving=False)
-                    per[name].append(time.perf_counter() - t)
+                per[name] += seconds_per_case(registrar, ct, cbcts)
     finally:
         busy.kill()
         torch.set_num_threads(cores)
