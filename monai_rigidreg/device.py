@@ -9,15 +9,17 @@ package is imported, see ``monai_rigidreg/__init__.py``).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
+from collections.abc import Iterator
 
 import SimpleITK as sitk
 import torch
 
 from monai_rigidreg.errors import InputError
 
-__all__ = ["resolve_device", "set_cpu_threads", "busy_cores", "adaptive_threads"]
+__all__ = ["resolve_device", "set_cpu_threads", "busy_cores", "adaptive_threads", "adapted_cpu_threads"]
 
 
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
@@ -71,7 +73,8 @@ def _runnable_tasks() -> int | None:
 def busy_cores(samples: int = 3, interval_s: float = 0.002) -> int | None:
     """How many cores other work keeps busy right now: the fewest runnable tasks over ``samples`` reads of
     ``/proc/loadavg`` ``interval_s`` apart, less the calling thread (a momentary task is not counted; a process that
-    computes all along, such as a busy loop or another registration, is). ``None`` where this cannot be read."""
+    computes all along, such as a busy loop, is; another registration is while it computes). ``None`` where this
+    cannot be read."""
     counts = []
     for k in range(samples):
         if k:
@@ -96,3 +99,21 @@ def adaptive_threads(current: int) -> int:
         return current
     available = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return max(1, min(int(current), available - busy))
+
+
+@contextlib.contextmanager
+def adapted_cpu_threads(adapt: bool = True) -> Iterator[int]:
+    """torch's and SimpleITK's thread counts lowered to :func:`adaptive_threads` for the ``with`` block (``adapt``;
+    never raised) and restored on exit; yields the torch thread count in use."""
+    current = torch.get_num_threads()
+    n = adaptive_threads(current) if adapt else current
+    if n >= current:
+        yield current
+        return
+    itk = sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
+    set_cpu_threads(n)
+    try:
+        yield n
+    finally:
+        torch.set_num_threads(current)
+        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(itk)

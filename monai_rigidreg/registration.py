@@ -38,7 +38,7 @@ from monai_rigidreg.confidence import (
     cylindrical_fov_mask,
     swap_inputs,
 )
-from monai_rigidreg.device import adaptive_threads, resolve_device
+from monai_rigidreg.device import adapted_cpu_threads, resolve_device
 from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import (
     LPS_TO_RAS,
@@ -439,26 +439,19 @@ class RigidRegistrar:
             result.details["cpu_threads"] = threads
         return result
 
-    @contextlib.contextmanager
-    def _cpu_threads(self) -> Iterator[int | None]:
-        """torch's and SimpleITK's thread counts for one call (``adapt_threads``), restored on exit; yields the torch
-        count in use on the CPU, ``None`` on another device."""
+    def _cpu_threads(self) -> contextlib.AbstractContextManager[int | None]:
+        """torch's and SimpleITK's thread counts for one call (``adapt_threads``,
+        :func:`~monai_rigidreg.device.adapted_cpu_threads`); the context yields the torch count in use on the CPU,
+        ``None`` on another device."""
         if self.device.type != "cpu":
-            yield None
-            return
-        current = torch.get_num_threads()
-        n = adaptive_threads(current) if self.adapt_threads else current
-        if n >= current:
-            yield current
-            return
-        itk = sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
-        torch.set_num_threads(n)
-        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(n)
-        try:
-            yield n
-        finally:
-            torch.set_num_threads(current)
-            sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(itk)
+            return contextlib.nullcontext(None)
+        return adapted_cpu_threads(self.adapt_threads)
+
+    def _in_background(self, fn: Callable[..., Any], *args: Any, thread_name: str, **kwargs: Any) -> _Background:
+        """``fn`` started in a worker thread and registered with this call, whose end joins it (:meth:`__call__`)."""
+        worker = _Background(fn, *args, thread_name=thread_name, **kwargs)
+        self._workers.append(worker)
+        return worker
 
     def _start_tensors(self, fixed_img: sitk.Image, moving_img: sitk.Image, start: np.ndarray,
                        body: sitk.Image | None = None) -> tuple[Grid, torch.Tensor, torch.Tensor]:
@@ -684,9 +677,9 @@ class RigidRegistrar:
         pose_weights = [w for w in (body,) if w is not None] if region_last else weights
         searching = None
         if global_init:  # the search needs no network estimate: it runs beside the network from the identity
-            searching = _Background(global_search, fixed_img, moving_img, fov_img, hu_range=self.hu_range,
-                                    fixed_body=body, **self.search_settings)
-            self._workers.append(searching)
+            searching = self._in_background(global_search, fixed_img, moving_img, fov_img, hu_range=self.hu_range,
+                                            fixed_body=body, thread_name="monai-rigidreg-search",
+                                            **self.search_settings)
         run = self._run_from(fixed_img, moving_img, np.eye(4), cascade_steps, pose_weights, timings, body)
         details: dict[str, Any] = {"network_params": {},
                                    "cascade_steps": self.cascade_steps if cascade_steps is None else cascade_steps,
@@ -725,9 +718,9 @@ class RigidRegistrar:
                 # level has the other. Its CT is masked by the field of view as the network's estimate places it;
                 # where the last level moves the estimate by more than EARLY_SWAP_MAX_CHANGE_MM, that mask is stale
                 # and the twin is computed again after it, from the refined estimate (as before 0.4.7)
-                early_swap = _Background(self.estimate, *swap_inputs(run.moving_t, run.fixed_t, grid, run.residual,
-                                                                     fov_t), grid, thread_name="monai-rigidreg-swap")
-                self._workers.append(early_swap)
+                early_swap = self._in_background(self.estimate, *swap_inputs(run.moving_t, run.fixed_t, grid,
+                                                                             run.residual, fov_t), grid,
+                                                 thread_name="monai-rigidreg-swap")
             t = time.perf_counter()
             refined, details["native_level"] = self._native(fixed_img, moving_img, run.total, fov_img, weights, grid,
                                                             region=weight_img is not None)
@@ -812,7 +805,7 @@ class _Background:
     the same way (thread ``monai-rigidreg-swap``; in-process 1.64 -> 1.43 s, ``bench_speed_0.4.7_2026-12-03.txt``).
     torch's intra-op thread count carries over to the worker thread."""
 
-    def __init__(self, fn: Callable[..., Any], *args: Any, thread_name: str = "monai-rigidreg-search",
+    def __init__(self, fn: Callable[..., Any], *args: Any, thread_name: str = "monai-rigidreg-worker",
                  **kwargs: Any) -> None:
         self._value: Any = None
         self._error: BaseException | None = None

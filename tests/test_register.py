@@ -424,7 +424,9 @@ def test_registrar_lowers_its_threads_while_other_work_is_busy_and_restores_them
 
     torch_before, itk_before = torch.get_num_threads(), sitk_.ProcessObject.GetGlobalDefaultNumberOfThreads()
     monkeypatch.setattr(reg_mod, "refine_native", watching)
-    monkeypatch.setattr(reg_mod, "adaptive_threads", lambda current: 1)  # as if other work kept the rest busy
+    import monai_rigidreg.device as device_mod
+
+    monkeypatch.setattr(device_mod, "adaptive_threads", lambda current: 1)  # as if other work kept the rest busy
     try:
         torch.set_num_threads(2)
         sitk_.ProcessObject.SetGlobalDefaultNumberOfThreads(2)
