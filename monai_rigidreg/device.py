@@ -4,7 +4,8 @@ and a thread count into the CPU thread settings of torch and SimpleITK.
 Every part of the package (registration, simulation, training glue) calls :func:`resolve_device`, so a bad device
 string is reported the same way everywhere: as :class:`~monai_rigidreg.errors.InputError` naming the value.
 :func:`set_cpu_threads` is what ``monai-rigidreg register --threads N`` calls (the OpenMP wait policy is set when the
-package is imported, see ``monai_rigidreg/__init__.py``).
+package is imported, see ``monai_rigidreg/__init__.py``); without it each registration runs inside
+:func:`adapted_cpu_threads`, fewer threads while other work keeps cores busy.
 """
 
 from __future__ import annotations
