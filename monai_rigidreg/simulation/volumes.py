@@ -154,11 +154,10 @@ def simulate_cbct(
     gen = torch.Generator(device=dev).manual_seed(int(seed))
     proj = apply_cbct_physics(proj, geom, physics, gen)
     fov = fov_mask(cbct_grid, geom, physics, dev)
-    if mask_outside_fov:  # reconstruct only the columns the field of view touches (the rest is set to 0 anyway)
-        rec = fdk(proj, geom, cbct_grid, window, dev, columns=fov.any(2))
+    # masked to the field of view, only the columns it touches need reconstructing (the rest is set to 0 anyway)
+    rec = fdk(proj, geom, cbct_grid, window, dev, columns=fov.any(2) if mask_outside_fov else None)
+    if mask_outside_fov:
         rec = torch.where(fov, rec, torch.zeros_like(rec))
-    else:
-        rec = fdk(proj, geom, cbct_grid, window, dev)
     return rec, fov, geom
 
 
