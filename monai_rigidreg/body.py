@@ -38,7 +38,7 @@ Limits, measured on ``tests/test_body.py``'s torsos:
 
 Runtime: the opening, closing and dilation are numpy ORs / ANDs of shifted views over the ball's voxels
 (:func:`_ball_filter`; the ball is ITK's own and the results are ITK's voxel for voxel, ``tests/test_body.py``):
-:func:`coarse_body_mask` of the 256x256x141 thorax CT 0.06 s against 0.26 s with ITK's binary morphology filters
+:func:`coarse_body_mask` of the 256x256x141 thorax CT 0.06 s against 0.27 s with ITK's binary morphology filters
 (``python benchmarks/bench_network_paths.py``, ``bench_network_paths_0.4.7_2026-12-03.txt``, 2 threads). Before
 0.4.7, with ITK's filters (one ITK thread and one torch thread on a 2-core machine busy with a training run), a
 512x512x112 int16 CT took 1.2 s for :func:`body_mask` and 1.3 s for :func:`exclude_outside_body`; those figures
@@ -115,10 +115,9 @@ def _ball_filter(mask: np.ndarray, radius_xyz: list[int], dilate: bool, outside:
     """Binary dilation (``dilate``) or erosion of a bool ``[z, y, x]`` array by the ball of ``radius_xyz`` voxels,
     voxels beyond the array counting as ``outside``.
 
-    One OR (AND) of shifted views per kernel voxel: on the registration's 128x128x70 working grid 3-4 ms for the
-    19-voxel ball and 11 ms for the 81-voxel one, where ITK's binary morphology filters took 83 ms for the opening and
-    107 ms for the closing (0.19 s of the CT's 0.26 s body mask, 2 threads, 2026-12-03). Kernels are symmetric, so
-    the shifted views need no mirroring.
+    One OR (AND) of shifted views per kernel voxel: the thorax CT's whole coarse body mask takes 0.07 s this way
+    against 0.27 s with ITK's binary morphology filters (``benchmarks/bench_network_paths.py``). Kernels are
+    symmetric, so the shifted views need no mirroring.
     """
     r = radius_xyz[::-1]
     nz, ny, nx = mask.shape

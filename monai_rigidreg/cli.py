@@ -143,10 +143,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 PROMPT_EXIT_COMMANDS = frozenset({"register"})
 """Sub-commands after which the console script ends the process at once (``os._exit``) instead of tearing the
-interpreter down: once torch is loaded, the teardown (module and object finalisation) takes about 0.25-0.3 s on a
-2-core machine (``python -c "import torch"`` 1.2 s wall against 0.93 s when it ends with ``os._exit``), a tenth of a
-``register`` command. Everything a command writes is closed by then, its worker threads joined, and logging and the
-standard streams are flushed first. ``MONAI_RIGIDREG_FULL_EXIT=1`` (or a loaded ``coverage``) keeps the normal
+interpreter down: once torch is loaded, the teardown (module and object finalisation) takes a few tenths of a
+second on a 2-core machine (``benchmarks/bench_speed.py``'s command rows with and without
+``MONAI_RIGIDREG_FULL_EXIT=1``: 2.90 s against 3.10 s in ``bench_speed_0.4.7_adaptive_threads_2026-12-03.txt``).
+Everything a command writes is closed by then, its worker threads joined, and logging and the standard streams are
+flushed first. ``MONAI_RIGIDREG_FULL_EXIT=1`` (or a loaded ``coverage``) keeps the normal
 exit, for tools that act at interpreter exit."""
 
 

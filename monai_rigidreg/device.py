@@ -91,9 +91,10 @@ def adaptive_threads(current: int) -> int:
     """The intra-op thread count for work starting now: ``current`` less the cores other work keeps busy
     (:func:`busy_cores`), at least 1; ``current`` where that cannot be read.
 
-    Why: on 2 cores beside a single-threaded busy loop a registration took 1.82 s per case with one thread against
-    1.94 s with two (the second thread waits for a core at every parallel region), while on a quiet machine two are
-    faster (``benchmarks/bench_worker_threads.py``, its thread-count table).
+    Why: on 2 cores beside a single-threaded busy loop a registration took 1.76 s per case with one thread against
+    1.91 s with two (the second thread waits for a core at every parallel region), while on a quiet machine two are
+    faster (``benchmarks/bench_worker_threads.py``, its thread-count table,
+    ``bench_worker_threads_0.4.7_adaptive_2026-12-03.txt``).
     """
     busy = busy_cores()
     if busy is None:

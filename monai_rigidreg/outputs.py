@@ -113,7 +113,7 @@ def write_outputs(
         registered = result.registered if result.registered is not None else resample(moving, fixed, result.transform,
                                                                                       default_value=fill)
         # registered.nii.gz is compressed (zlib, outside the GIL) in a worker while the rest is written and the QC
-        # figure drawn: 0.145 -> 0.100 s for the two on a bench_speed pair (benchmarks/bench_network_paths.py); the
+        # figure drawn: 0.142 -> 0.100 s for the two on a bench_speed pair (benchmarks/bench_network_paths.py); the
         # pool is joined before the staged folder is moved into place or removed, and the worker's error is raised
         with ThreadPoolExecutor(max_workers=1) as pool:
             saving = pool.submit(save_volume, registered, tmp / "registered.nii.gz")
