@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from monai_rigidreg.geometry import Grid, normalized_theta, params_to_matrix_torch
 
-__all__ = ["warp_volume", "warp_volume_many", "warp_volume_params"]
+__all__ = ["warp_points", "warp_volume", "warp_volume_many", "warp_volume_params"]
 
 MODES = ("bilinear", "nearest")
 PADDING_MODES = ("zeros", "border", "reflection")
@@ -67,6 +67,44 @@ def _sample_points(moving: torch.Tensor, matrices: torch.Tensor, fixed_grid: Gri
     theta = normalized_theta(matrices.to(torch.float64), fixed_grid, moving_grid, array_order).to(moving.dtype)
     out_size = tuple(fixed_grid.size) if array_order == "xyz" else tuple(fixed_grid.size)[::-1]
     return F.affine_grid(theta[:, :3], [matrices.shape[0], moving.shape[1], *out_size], align_corners=True)
+
+
+def warp_points(
+    moving: torch.Tensor,
+    matrix: torch.Tensor,
+    points: torch.Tensor,
+    fixed_grid: Grid,
+    moving_grid: Grid,
+    mode: str = "bilinear",
+    padding_mode: str = "zeros",
+) -> torch.Tensor:
+    """:func:`warp_volume` at some voxels of ``fixed_grid`` only: ``[B, C, x, y, z]`` (``xyz`` layout on
+    ``moving_grid``), ``[B, 4, 4]`` fixed -> moving matrices (LPS mm) and ``points`` ``[K, 3]``, fixed-grid voxel
+    indices ``(i, j, k)`` (float, may be fractional) -> ``[B, C, K]``, the values :func:`warp_volume` has there
+    (the same sampling, ``grid_sample`` with ``align_corners=True``, on a ``[B, 1, 1, K, 3]`` grid of points).
+
+    The cost is that of ``K`` output voxels: the last level's Gauss-Newton steps sample only the voxels that can
+    carry weight (:func:`~monai_rigidreg.networks.gauss_newton.gauss_newton_align`, ``candidates``).
+    """
+    if moving.ndim != 5:
+        raise ValueError(f"moving must be [B, C, D, H, W], got shape {tuple(moving.shape)}")
+    if matrix.shape[0] != moving.shape[0]:
+        raise ValueError(f"batch of matrix ({matrix.shape[0]}) and moving ({moving.shape[0]}) differ")
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must be [K, 3] voxel indices, got shape {tuple(points.shape)}")
+    if tuple(moving.shape[2:]) != tuple(moving_grid.size):
+        raise ValueError(f"moving spatial shape {tuple(moving.shape[2:])} does not match its grid {moving_grid.size}")
+    if mode not in MODES or padding_mode not in PADDING_MODES:
+        raise ValueError(f"mode must be one of {MODES} and padding_mode one of {PADDING_MODES}, got {mode!r}, "
+                         f"{padding_mode!r}")
+    theta = normalized_theta(matrix.to(torch.float64), fixed_grid, moving_grid, "xyz").to(moving.dtype)  # [B, 3, 4]
+    # normalized fixed coordinates, grid component g addressing index axis 2 - g (as affine_grid lays them out)
+    half = torch.as_tensor([max(n - 1, 1) / 2.0 for n in fixed_grid.size], dtype=moving.dtype, device=moving.device)
+    norm = (points.to(moving.dtype) / half - 1.0).flip(1)  # [K, 3]
+    sample_at = norm @ theta[:, :, :3].transpose(1, 2) + theta[:, None, :, 3]  # [B, K, 3]
+    out = F.grid_sample(moving.contiguous(), sample_at[:, None, None], mode=mode, padding_mode=padding_mode,
+                        align_corners=True)  # [B, C, 1, 1, K]
+    return out[:, :, 0, 0]
 
 
 def warp_volume_many(

@@ -6,11 +6,14 @@ import numpy as np
 import pytest
 import torch
 
+import monai_rigidreg.networks.gauss_newton as gauss_newton_module
 from monai_rigidreg.engine import RegistrationCriterion
 from monai_rigidreg.geometry import Grid, matrix_to_params_torch, params_to_matrix_torch, rotation_matrix
+from monai_rigidreg.image_ops import erode
 from monai_rigidreg.losses import RigidRegistrationLoss
 from monai_rigidreg.networks import DualEncoderRigidNet, GaussNewtonStage, TwoStageRigidNet
 from monai_rigidreg.networks.gauss_newton import fixed_jacobian, gauss_newton_align, parameter_flow, polynomial_basis
+from monai_rigidreg.precision import support_reach
 from monai_rigidreg.warp import warp_volume
 
 TINY = {"channels": (4, 8, 8), "strides": (2, 2, 2), "pool_size": 2, "hidden": (16,)}
@@ -352,3 +355,70 @@ def test_stage_applies_tolerance_and_secant_at_inference_only():
     for bad in [(0.0, 0.01), (0.01,), (0.01, 0.01, 0.01)]:
         with pytest.raises(ValueError, match="tolerance"):
             GaussNewtonStage((3.0, 3.0, 3.0), tolerance=bad)
+
+
+def test_jacobian_at_some_voxels_is_the_dense_one_there():
+    direction = rotation_matrix(*np.deg2rad([-25.0, 5.0, 40.0])).ravel()
+    grid = Grid((14, 11, 9), (1.2, 2.5, 1.7), (-30.0, 12.0, 80.0), tuple(direction))
+    fixed = torch.rand(1, 2, *grid.size, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    index = torch.tensor([0, 5, 99, 500, 1385])  # first and last voxel included
+    dense = fixed_jacobian(fixed, grid).flatten(3)[..., index]
+    at = fixed_jacobian(fixed, grid, index)
+    assert at.shape == (1, 6, 2, 5)
+    torch.testing.assert_close(at, dense, rtol=1e-12, atol=1e-12)
+
+
+def _truncated_pair(params):
+    """A blob volume, its moving twin under ``params`` truncated to a cylinder-like box (the CBCT's field of view),
+    that field of view, the support eroded from it by 3 voxels, and a weight that is zero on one side."""
+    grid = Grid.centered((36, 34, 30), (2.0, 2.0, 2.0), (5.0, -3.0, 2.0))
+    fixed = _blobs(grid.size, seed=4, n=16, sharp=2.0).float()
+    moving = _moving_for(fixed.double(), torch.tensor([params], dtype=torch.float64), grid).float()
+    fov = torch.zeros_like(moving)
+    fov[..., 4:32, 5:30, 3:27] = 1.0
+    moving = moving * fov
+    radius = [3, 3, 3]
+    weight = torch.ones_like(fixed)
+    weight[..., :8] = 0.0
+    weight[..., 8:12] = 0.5
+    return grid, fixed, moving, fov, erode(fov, radius), radius, weight
+
+
+def test_gauss_newton_over_the_candidate_voxels_takes_the_dense_steps(monkeypatch):
+    # the last level's candidates (support_reach): the same estimate as over the whole grid, computed at ~half the
+    # voxels; beyond reach_mm the remaining steps use the whole grid
+    params = [1.2, -0.8, 0.6, 0.8, -0.5, 0.7]
+    grid, fixed, moving, fov, support, radius, weight = _truncated_pair(params)
+    init = torch.eye(4, dtype=torch.float64)[None]
+    kwargs = dict(iterations=4, weight=weight, moving_support=support, bias_degree=1)
+    dense = gauss_newton_align(moving, fixed, grid, init, **kwargs)
+    err = (matrix_to_params_torch(dense, grid.center())[0] - torch.tensor(params, dtype=torch.float64)).abs().max()
+    assert err < 0.3  # from 1.2 mm / 0.8 degrees (the truncated blobs' own fixed point is 0.2 degrees off)
+    cand = support_reach(fov, radius, grid.spacing, weight, 4.0)
+    assert 0.3 < cand.float().mean() < 0.8
+    calls = {"points": 0, "volume": 0}
+    for name in ("points", "volume"):
+        real = getattr(gauss_newton_module, f"warp_{name}")
+
+        def counted(*a, _real=real, _name=name, **k):
+            calls[_name] += 1
+            return _real(*a, **k)
+        monkeypatch.setattr(gauss_newton_module, f"warp_{name}", counted)
+    subset = gauss_newton_align(moving, fixed, grid, init, candidates=cand, reach_mm=4.0, **kwargs)
+    assert calls == {"points": 4, "volume": 0}
+    torch.testing.assert_close(subset, dense, atol=1e-5, rtol=0)
+    # reach 0: the first step over the candidates, the estimate then leaves the reach and the whole grid takes over
+    calls.update(points=0, volume=0)
+    fallback = gauss_newton_align(moving, fixed, grid, init, candidates=cand, reach_mm=0.0, **kwargs)
+    assert calls == {"points": 1, "volume": 3}
+    torch.testing.assert_close(fallback, dense, atol=1e-5, rtol=0)
+    # the candidates are what the steps use: missing voxels that carry weight change the estimate
+    half = cand.clone()
+    half[..., 18:] = False
+    partial = gauss_newton_align(moving, fixed, grid, init, candidates=half, reach_mm=4.0, **kwargs)
+    assert (partial - dense).abs().max() > 1e-3
+    with pytest.raises(ValueError, match="one case"):
+        gauss_newton_align(moving.repeat(2, 1, 1, 1, 1), fixed.repeat(2, 1, 1, 1, 1), grid, init.repeat(2, 1, 1),
+                           candidates=cand)
+    with pytest.raises(ValueError, match="jacobian"):
+        gauss_newton_align(moving, fixed, grid, init, candidates=cand, jacobian="symmetric")

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import SimpleITK as sitk
+import torch
 from conftest import synth_ct
 
 from monai_rigidreg.confidence import cylindrical_fov_mask
 from monai_rigidreg.geometry import Grid, matrix_to_sitk, params_to_matrix, transform_points
-from monai_rigidreg.precision import native_grid, refine_native
+from monai_rigidreg.image_ops import erode
+from monai_rigidreg.precision import native_grid, refine_native, support_reach
+from monai_rigidreg.warp import warp_volume
 
 
 def _pair(truth_iso, iso, cb_size=(96, 96, 60), cb_spacing=1.5, seed=21):
@@ -123,3 +127,41 @@ def test_registrar_passes_its_native_bias_degree_to_the_last_level(monkeypatch):
         reg_mod.RigidRegistrar.from_bundle(device="cpu", native_highpass_sigma_mm=0.0)
     with pytest.raises(InputError, match="native_bias_degree_roi"):
         reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree_roi=-3)
+
+
+@pytest.mark.parametrize("spacing", [(1.875, 1.875, 1.875), (1.0, 1.5, 2.5)])
+def test_support_reach_holds_every_voxel_the_moved_support_covers(spacing):
+    # every voxel where the support warped by a motion within the reach covers (> 0.999, as the steps count it)
+    # is a candidate; the candidates exclude most of what lies outside the field of view
+    grid = Grid.centered((40, 36, 32), spacing, (0.0, 0.0, 0.0))
+    idx = torch.meshgrid(*[torch.arange(n, dtype=torch.float32) - (n - 1) / 2 for n in grid.size], indexing="ij")
+    fov = ((idx[0] * spacing[0]) ** 2 + (idx[1] * spacing[1]) ** 2 < 30.0**2).float()[None, None]  # a cylinder
+    radius = [max(1, round(8.0 / s)) for s in spacing]
+    support = erode(fov, radius)
+    reach = 4.0
+    cand = support_reach(fov, radius, spacing, None, reach)
+    assert cand.dtype == torch.bool and cand.shape == fov.shape
+    assert cand.float().mean() < 0.8 * fov.mean() + 0.2 * support.mean() + 0.2  # not the whole grid
+    rng = np.random.default_rng(0)
+    corners = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)]) * (np.asarray(grid.size) - 1)
+    corners = corners * np.asarray(spacing) + np.asarray(grid.origin)
+    tested = 0
+    for _ in range(30):
+        p = rng.uniform(-1, 1, 6)
+        target = reach * rng.uniform(0.6, 1.0)
+        for _ in range(6):  # scaled until the farthest corner moves target mm or less
+            m = params_to_matrix(p)
+            moved = np.linalg.norm(transform_points(m, corners) - corners, axis=1).max()
+            if moved <= target:
+                break
+            p = p * 0.99 * target / moved
+        assert moved <= reach
+        covered = warp_volume(support, torch.as_tensor(m)[None], grid, grid) > 0.999
+        assert not (covered & ~cand).any()
+        tested += 1
+    assert tested >= 5
+    # weight zero excludes voxels; the erosion too small for the reach leaves the whole grid
+    weight = torch.ones_like(fov)
+    weight[..., :5] = 0.0
+    assert not support_reach(fov, radius, spacing, weight, reach)[..., :5].any()
+    assert support_reach(fov, [1, 1, 1], spacing, None, reach).all()

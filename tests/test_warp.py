@@ -11,7 +11,7 @@ from conftest import oblique_direction, smooth_random_image
 
 from monai_rigidreg.geometry import Grid, params_to_matrix, params_to_sitk
 from monai_rigidreg.io import metatensor_to_sitk, sitk_to_metatensor
-from monai_rigidreg.warp import warp_volume, warp_volume_many, warp_volume_params
+from monai_rigidreg.warp import warp_points, warp_volume, warp_volume_many, warp_volume_params
 
 
 @pytest.fixture(scope="module")
@@ -118,3 +118,33 @@ def test_one_volume_under_many_transforms_is_each_warp(moving_image, mode):
         torch.testing.assert_close(out[k], warp_volume(vol, mats[k:k + 1], FIXED, Grid.from_sitk(moving_image),
                                                         mode=mode)[0], rtol=0, atol=1e-5)
     assert not torch.allclose(out[0], out[1])
+
+
+def test_warp_points_are_warp_volume_at_those_voxels(device_dtype):
+    # oblique, anisotropic grids of unequal sizes per axis: a transposed axis or a flipped grid component in the
+    # normalized coordinates would sample elsewhere
+    device, dtype = device_dtype
+    fixed = Grid((20, 17, 13), (1.5, 2.0, 2.5), (-10.0, 5.0, 3.0), oblique_direction(10.0, -5.0, 20.0))
+    m_dir = oblique_direction(-15.0, 10.0, 5.0)
+    m_size, m_spacing = (15, 22, 18), (3.0, 2.0, 2.5)
+    half_extent = np.reshape(m_dir, (3, 3)) @ ((np.asarray(m_size) - 1) / 2 * np.asarray(m_spacing))
+    moving = Grid(m_size, m_spacing, tuple(fixed.center() - half_extent), m_dir)  # same centre as the fixed grid
+    vol = torch.rand(2, 3, *moving.size, generator=torch.Generator().manual_seed(1)).to(device, dtype)
+    mats = torch.as_tensor(np.stack([params_to_matrix([1, 2, -3, 5, -4, 10], fixed.center()),
+                                     params_to_matrix([0, -2, 1, -3, 2, 1], fixed.center())])).to(device)
+    full = warp_volume(vol, mats, fixed, moving).flatten(2)  # [2, 3, N]
+    index = torch.randperm(full.shape[-1], generator=torch.Generator().manual_seed(2))[:400].to(device)
+    points = torch.stack(torch.unravel_index(index, fixed.size), 1).to(dtype)
+    sampled = warp_points(vol, mats, points, fixed, moving)
+    assert sampled.shape == (2, 3, 400)
+    tol = 1e-5 if dtype == torch.float32 else 1e-10
+    torch.testing.assert_close(sampled, full[:, :, index], atol=tol, rtol=0)
+    assert (full[:, :, index] != 0).float().mean() > 0.5  # most points land inside the moving volume
+    # a half-voxel shift of the points is the mean of the neighbours along that axis (trilinear)
+    ident = torch.eye(4, dtype=torch.float64, device=device)[None].repeat(2, 1, 1)
+    half = warp_points(vol, ident, torch.tensor([[3.5, 4.0, 5.0]], dtype=dtype, device=device), moving, moving)
+    torch.testing.assert_close(half[:, :, 0], 0.5 * (vol[:, :, 3, 4, 5] + vol[:, :, 4, 4, 5]), atol=tol, rtol=0)
+    with pytest.raises(ValueError, match="points"):
+        warp_points(vol, mats, points[:, :2], fixed, moving)
+    with pytest.raises(ValueError, match="batch"):
+        warp_points(vol[:1], mats, points, fixed, moving)

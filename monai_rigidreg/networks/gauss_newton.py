@@ -32,7 +32,7 @@ from monai_rigidreg.geometry import (
     params_to_matrix_torch,
 )
 from monai_rigidreg.image_ops import erode, gradient_magnitude, local_mean, pyramid
-from monai_rigidreg.warp import warp_volume
+from monai_rigidreg.warp import warp_points, warp_volume
 
 __all__ = [
     "GaussNewtonStage",
@@ -75,8 +75,10 @@ def _parameter_derivative(grid: Grid) -> np.ndarray:
     return (mats[:6] - mats[6:])[:, :3, :] / (2 * h)
 
 
-def fixed_jacobian(fixed: torch.Tensor, grid: Grid) -> torch.Tensor:
-    """``d fixed(W_p(x)) / dp`` at ``p = 0``: ``[B, 6, C, x, y, z]`` (per mm and per degree).
+def fixed_jacobian(fixed: torch.Tensor, grid: Grid, index: torch.Tensor | None = None) -> torch.Tensor:
+    """``d fixed(W_p(x)) / dp`` at ``p = 0``: ``[B, 6, C, x, y, z]`` (per mm and per degree); with ``index`` (``[K]``
+    flat voxel indices of the grid) at those voxels only: ``[B, 6, C, K]`` (the gradients are taken over the whole
+    grid, the rest is formed at the ``K`` voxels).
 
     Chain rule: the physical image gradient (central differences along the array axes, mapped through the
     grid's index-to-physical matrix) times :func:`parameter_flow`. ``fixed`` is in MONAI ``xyz`` layout on ``grid``.
@@ -91,8 +93,12 @@ def fixed_jacobian(fixed: torch.Tensor, grid: Grid) -> torch.Tensor:
         raise ValueError(f"fixed spatial shape {tuple(fixed.shape[2:])} does not match its grid {grid.size}")
     g_idx = torch.gradient(fixed, dim=(2, 3, 4))  # 3 x [B, C, x, y, z] per index step
     slope, offset = _flow_coefficients(grid)  # [6, 3 (index axis), 3 (gradient axis)], [6, 3 (gradient axis)]
-    ramps = [(torch.arange(n, dtype=fixed.dtype, device=fixed.device) - (n - 1) / 2.0).view(
-        [n if a == i else 1 for a in range(3)]) for i, n in enumerate(grid.size)]
+    if index is None:
+        ramps = [(torch.arange(n, dtype=fixed.dtype, device=fixed.device) - (n - 1) / 2.0).view(
+            [n if a == i else 1 for a in range(3)]) for i, n in enumerate(grid.size)]
+    else:
+        g_idx = [g.flatten(2)[:, :, index] for g in g_idx]  # 3 x [B, C, K]
+        ramps = [u.to(fixed.dtype) - (n - 1) / 2.0 for u, n in zip(voxel_indices(index, grid.size), grid.size)]
 
     def combine(coefs: np.ndarray) -> torch.Tensor | None:
         terms = [float(c) * g for c, g in zip(coefs, g_idx) if c != 0.0]
@@ -105,7 +111,7 @@ def fixed_jacobian(fixed: torch.Tensor, grid: Grid) -> torch.Tensor:
             part = combine(slope[k, i])
             if part is not None:
                 jac = part * ramps[i] if jac is None else jac + part * ramps[i]
-        out.append(torch.zeros_like(fixed) if jac is None else jac)
+        out.append(torch.zeros_like(g_idx[0]) if jac is None else jac)
     return torch.stack(out, 1)
 
 
@@ -147,6 +153,8 @@ def gauss_newton_align(
     jacobian: str = "fixed",
     tolerance: Sequence[float] | None = None,
     secant: bool = False,
+    candidates: torch.Tensor | None = None,
+    reach_mm: float = 0.0,
 ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Refine a fixed->moving rigid matrix so that ``moving(T(x)) ~ fixed(x)`` in least squares.
 
@@ -203,8 +211,10 @@ def gauss_newton_align(
     # the forward pass); gradients reach both feature maps through the residual
     if jacobian not in JACOBIANS:
         raise ValueError(f"jacobian must be 'fixed', 'moving' or 'symmetric', got {jacobian!r}")
-    jac_fixed = None if jacobian == "moving" else fixed_jacobian(fixed.detach(), grid).flatten(2)  # [B, 6, C*N]
-    jf = jac_fixed  # (products in the feature dtype, the 6x6 solve in float64)
+    subset = None if candidates is None else _Subset(candidates, grid, init, reach_mm, fixed, weight, jacobian,
+                                                     robust_scale)
+    # (products in the feature dtype, the 6x6 solve in float64)
+    jac_fixed = None if jacobian == "moving" or subset is not None else fixed_jacobian(fixed.detach(), grid).flatten(2)
     n_ch, n_vox = moving.shape[1], moving[0, 0].numel()
     basis = None if bias_degree < 0 else polynomial_basis(grid, bias_degree, moving.dtype, moving.device).flatten(1)
     center = grid.center()
@@ -215,26 +225,26 @@ def gauss_newton_align(
     gain = torch.ones(moving.shape[0], dtype=torch.float64, device=moving.device)
     raw_prev = applied_prev = None
     for _ in range(iterations):
-        both = warp_volume(stacked, total, grid, grid)
-        warped, cover = both[:, :n_ch], both[:, n_ch:]
-        w = (cover > 0.999).to(moving.dtype)
-        if weight is not None:
-            w = w * weight
-        r = warped - fixed  # [B, C, ...]
-        if jacobian != "fixed":  # the step is still composed as T o W_d^-1 (W_d^-1 = W_-d to first order)
-            jac_moving = fixed_jacobian(warped.detach(), grid).flatten(2)
-            jf = jac_moving if jac_fixed is None else 0.5 * (jac_fixed + jac_moving)
-        if robust_scale is not None:
-            sq = (r.detach() ** 2).sum(1, keepdim=True)
-            w = w * (robust_scale**2 / (robust_scale**2 + sq))
-        wj = jf * w.expand_as(r).flatten(1).unsqueeze(1)  # [B, 6, C*N]
-        h = (wj @ jf.transpose(1, 2)).to(torch.float64)  # [B, 6, 6]
-        g = (wj @ r.flatten(1).unsqueeze(-1)).to(torch.float64)  # [B, 6, 1]
-        if basis is not None:
-            h, g = _with_bias_terms(h, g, wj, w, r, basis, n_ch, n_vox)
-        diag = torch.diagonal(h, dim1=1, dim2=2)
-        h = h + torch.diag_embed(damping * diag + 1e-9)
-        d = torch.linalg.solve(h, g).squeeze(-1)[:, :6]  # [B, 6] (bias coefficients, if any, are dropped)
+        if subset is not None and not subset.within_reach(total):
+            # the estimate left the reach the candidates were chosen for: the whole grid from here
+            subset = None
+            jac_fixed = fixed_jacobian(fixed.detach(), grid).flatten(2)
+        if subset is not None:
+            both = warp_points(stacked, total, subset.points, grid, grid)  # [1, C + 1, K]
+            warped, cover = both[:, :n_ch], both[:, n_ch:]
+            w = (cover > 0.999).to(moving.dtype)
+            if subset.weight is not None:
+                w = w * subset.weight
+            r = warped - subset.fixed  # [1, C, K]
+            wj = subset.jacobian * w.expand_as(r).flatten(1).unsqueeze(1)  # [1, 6, C*K]
+            h = (wj @ subset.jacobian.transpose(1, 2)).to(torch.float64)
+            g = (wj @ r.flatten(1).unsqueeze(-1)).to(torch.float64)
+            if basis is not None:
+                h, g = _with_bias_terms(h, g, wj, w, r, basis[:, subset.index], n_ch, subset.count)
+            d = _damped_step(h, g, damping)
+        else:
+            d, w = _dense_step(stacked, total, grid, fixed, weight, jac_fixed, jacobian, robust_scale, basis, n_ch,
+                               n_vox, damping)
         if secant:
             raw = d.detach()
             if applied_prev is not None:
@@ -262,6 +272,89 @@ def gauss_newton_align(
     w = covered if weight is None else covered * weight
     res = (w * (warped - fixed) ** 2).sum(dim=(1, 2, 3, 4)) / (w.sum(dim=(1, 2, 3, 4)) * moving.shape[1] + 1e-6)
     return total, res, overlap
+
+
+def _damped_step(h: torch.Tensor, g: torch.Tensor, damping: float) -> torch.Tensor:
+    """The Levenberg-Marquardt step ``[B, 6]`` of the normal equations ``h`` ``[B, n, n]``, ``g`` ``[B, n, 1]``
+    (``n >= 6``: bias coefficients, if any, are solved for and dropped)."""
+    diag = torch.diagonal(h, dim1=1, dim2=2)
+    h = h + torch.diag_embed(damping * diag + 1e-9)
+    return torch.linalg.solve(h, g).squeeze(-1)[:, :6]
+
+
+def _dense_step(stacked: torch.Tensor, total: torch.Tensor, grid: Grid, fixed: torch.Tensor,
+                weight: torch.Tensor | None, jac_fixed: torch.Tensor | None, jacobian: str,
+                robust_scale: float | None, basis: torch.Tensor | None, n_ch: int, n_vox: int,
+                damping: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """One step of :func:`gauss_newton_align` over the whole grid: ``stacked`` ``[B, C + 1, x, y, z]`` (the moving
+    features and their support), the estimate ``total`` ``[B, 4, 4]`` -> the step ``[B, 6]`` and the voxel weights
+    ``[B, 1, x, y, z]`` it was computed with."""
+    both = warp_volume(stacked, total, grid, grid)
+    warped, cover = both[:, :n_ch], both[:, n_ch:]
+    w = (cover > 0.999).to(stacked.dtype)
+    if weight is not None:
+        w = w * weight
+    r = warped - fixed  # [B, C, ...]
+    jf = jac_fixed
+    if jacobian != "fixed":  # the step is still composed as T o W_d^-1 (W_d^-1 = W_-d to first order)
+        jac_moving = fixed_jacobian(warped.detach(), grid).flatten(2)
+        jf = jac_moving if jac_fixed is None else 0.5 * (jac_fixed + jac_moving)
+    if robust_scale is not None:
+        sq = (r.detach() ** 2).sum(1, keepdim=True)
+        w = w * (robust_scale**2 / (robust_scale**2 + sq))
+    wj = jf * w.expand_as(r).flatten(1).unsqueeze(1)  # [B, 6, C*N]
+    h = (wj @ jf.transpose(1, 2)).to(torch.float64)  # [B, 6, 6]
+    g = (wj @ r.flatten(1).unsqueeze(-1)).to(torch.float64)  # [B, 6, 1]
+    if basis is not None:
+        h, g = _with_bias_terms(h, g, wj, w, r, basis, n_ch, n_vox)
+    return _damped_step(h, g, damping), w
+
+
+def voxel_indices(index: torch.Tensor, size: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Flat indices ``[K]`` of a ``size`` ``(x, y, z)`` volume (row-major, the last axis fastest) -> the three voxel
+    index tensors ``(i, j, k)``. Written out rather than ``torch.unravel_index``, whose first call imports sympy
+    (0.35 s of a command-line registration, measured with cProfile)."""
+    ny, nz = int(size[1]), int(size[2])
+    return index // (ny * nz), (index // nz) % ny, index % nz
+
+
+class _Subset:
+    """The candidate voxels of :func:`gauss_newton_align` (one case) and what a step needs at them: ``index`` ``[K]``
+    flat voxel indices, ``points`` ``[K, 3]`` their voxel indices, ``fixed`` ``[1, C, K]``, ``jacobian``
+    ``[1, 6, C*K]`` (:func:`fixed_jacobian` there), ``weight`` ``[1, 1, K]`` (or ``None``); :meth:`within_reach`
+    tells whether an estimate keeps every grid point within ``reach_mm`` of where ``init`` puts it."""
+
+    def __init__(self, candidates: torch.Tensor, grid: Grid, init: torch.Tensor, reach_mm: float,
+                 fixed: torch.Tensor, weight: torch.Tensor | None, jacobian: str, robust_scale: float | None) -> None:
+        if fixed.shape[0] != 1 or init.shape[0] != 1:
+            raise ValueError(f"candidates are for one case, got a batch of {fixed.shape[0]}")
+        if tuple(candidates.shape) != (1, 1, *fixed.shape[2:]):
+            raise ValueError(f"candidates must be [1, 1, x, y, z] like the features, got {tuple(candidates.shape)}")
+        if jacobian != "fixed":
+            raise ValueError("candidates need jacobian='fixed' (the moving Jacobian is computed over the whole grid)")
+        if robust_scale is not None:
+            raise ValueError("candidates are not combined with robust_scale")
+        if reach_mm < 0:
+            raise ValueError(f"reach_mm must be >= 0, got {reach_mm}")
+        n_ch, n_vox = fixed.shape[1], fixed[0, 0].numel()
+        self.index = candidates.reshape(-1).nonzero().squeeze(1)
+        self.count = int(self.index.numel())
+        self.points = torch.stack(voxel_indices(self.index, grid.size), 1).to(fixed.dtype)
+        self.fixed = fixed.reshape(1, n_ch, n_vox)[:, :, self.index]
+        self.jacobian = fixed_jacobian(fixed.detach(), grid, self.index).reshape(1, 6, n_ch * self.count)
+        self.weight = None if weight is None else weight.reshape(1, 1, n_vox)[:, :, self.index]
+        corners = np.array([[a, b, c, 1.0] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+        corners[:, :3] *= np.asarray(grid.size, dtype=np.float64) - 1
+        self._corners = torch.as_tensor(corners @ grid.index_to_physical().T, dtype=torch.float64,
+                                        device=init.device)  # [8, 4] LPS mm
+        self._start = self._corners @ init[0].detach().to(torch.float64).T
+        self._reach = float(reach_mm)
+
+    def within_reach(self, total: torch.Tensor) -> bool:
+        """Whether ``total`` ``[1, 4, 4]`` moves no grid point more than ``reach_mm`` from ``init``'s image of it (the
+        displacement between two affine maps is largest at a corner of the grid's box)."""
+        moved = self._corners @ total[0].detach().to(torch.float64).T - self._start
+        return bool(moved[:, :3].norm(dim=1).amax() <= self._reach)
 
 
 def _with_bias_terms(h: torch.Tensor, g: torch.Tensor, wj: torch.Tensor, w: torch.Tensor, r: torch.Tensor,
