@@ -55,8 +55,9 @@ def _command_in(argv: Sequence[str]) -> str | None:
     return None
 
 
-def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The argument parser with every available sub-command, or with ``command`` alone.
+def build_parser(command: str | None = None, with_commands: bool = True) -> argparse.ArgumentParser:
+    """The argument parser with every available sub-command, or with ``command`` alone (``with_commands=False``:
+    none, the global options only, e.g. for ``--version``).
 
     Importing a sub-command's module imports what it needs (the simulator pulls in MONAI's transforms, training
     ignite): ``monai-rigidreg register`` builds its own parser only, so it does not pay for the others' imports
@@ -71,7 +72,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     _add_verbosity(parser, defaults=True)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in ([COMMANDS[command]] if command in COMMANDS else COMMAND_MODULES):
+    for name in ([COMMANDS[command]] if command in COMMANDS else COMMAND_MODULES) if with_commands else ():
         try:
             module = importlib.import_module(name)
         except ModuleNotFoundError as exc:
@@ -105,7 +106,9 @@ def log_level(verbose: int, quiet: int) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``monai-rigidreg`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser = build_parser(_command_in(argv))
+    command = _command_in(argv)
+    # --version alone needs no sub-command: building them all imports torch and MONAI (about 4 s on 2 cores)
+    parser = build_parser(command, with_commands=command is not None or "--version" not in argv)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=log_level(args.verbose, args.quiet),

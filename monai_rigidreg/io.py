@@ -24,6 +24,7 @@ from monai_rigidreg.dicom_series import (  # re-exported: the DICOM reading live
 )
 from monai_rigidreg.errors import InputError, OutputExistsError, first_line
 from monai_rigidreg.geometry import Grid, matrix_to_sitk, sitk_to_matrix
+from monai_rigidreg.prefetch import check_nifti_finite, needs_nan_check, take_prefetched
 
 __all__ = [
     "VOLUME_SUFFIXES",
@@ -182,14 +183,17 @@ def load_volume(
     if not p.exists():
         raise InputError("no such file or directory", p)
     nifti_check = None
+    prefetched = None if p.is_dir() else take_prefetched(p)  # a read the command started while it imported
     if p.is_dir():
         image = read_dicom_series(p, series_uid)
+    elif prefetched is not None and prefetched[0].exception() is None:
+        image, nifti_check = prefetched[0].result(), prefetched[1] if check_finite else None
     else:
-        if check_finite and _suffix(p) in (".nii", ".nii.gz"):
+        if check_finite and needs_nan_check(p):
             # the second read (nibabel) runs while SimpleITK reads: both decompress without holding the GIL
             # (benchmarks/bench_inference_speed.py: a 256^3 float32 CT in 0.20 s instead of 0.31 s on 2 cores)
             pool = ThreadPoolExecutor(max_workers=1)
-            nifti_check = pool.submit(_check_nifti_finite, p)
+            nifti_check = pool.submit(check_nifti_finite, p)
             pool.shutdown(wait=False)
         try:
             image = sitk.ReadImage(str(p))
@@ -206,23 +210,6 @@ def load_volume(
     if check_finite:
         check_volume(image, p, check_finite=True)
     return image
-
-
-def _check_nifti_finite(path: Path) -> None:
-    """ITK's NIfTI reader silently replaces NaN by 0: look at the stored floats with nibabel instead.
-
-    nibabel (which imports pydicom, 0.11 s in all) is imported here, in the reading thread, while SimpleITK reads."""
-    import nibabel as nib
-
-    try:
-        img = nib.load(str(path))
-    except Exception:  # noqa: BLE001 - SimpleITK could read it; nibabel's opinion is only a second check
-        return
-    if not np.issubdtype(img.get_data_dtype(), np.floating):
-        return
-    bad = int(np.count_nonzero(~np.isfinite(np.asanyarray(img.dataobj))))
-    if bad:
-        raise InputError(f"volume has {bad} NaN or infinite voxel(s)", path)
 
 
 def save_volume(image: sitk.Image, path: str | Path, overwrite: bool = False, compress: bool = True) -> Path:

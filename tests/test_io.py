@@ -278,3 +278,82 @@ def test_dicom_series_with_duplicate_or_sheared_slices_is_refused(tmp_path, volu
         writer.Execute(sl)
     with pytest.raises(InputError, match="drift sideways by up to 7.50 mm"):
         load_volume(tilt)
+
+
+def _same_image(a: sitk.Image, b: sitk.Image) -> None:
+    assert a.GetPixelID() == b.GetPixelID() and a.GetSize() == b.GetSize()
+    np.testing.assert_array_equal(sitk.GetArrayViewFromImage(a), sitk.GetArrayViewFromImage(b))
+    np.testing.assert_allclose(a.GetOrigin(), b.GetOrigin())
+    np.testing.assert_allclose(a.GetSpacing(), b.GetSpacing())
+    np.testing.assert_allclose(a.GetDirection(), b.GetDirection())
+
+
+def test_prefetched_reads_are_what_load_volume_reads_and_go_through_its_checks(tmp_path, volume):
+    """The register command's reads started before torch is imported (monai_rigidreg.prefetch): load_volume takes
+    them (once), gives the image it reads itself, re-reads a file changed since, and reports a corrupt file or NaN
+    voxels with the same errors."""
+    import os
+
+    from monai_rigidreg.prefetch import needs_nan_check, prefetch_volumes, take_prefetched
+
+    int_path = tmp_path / "ct.nii.gz"
+    sitk.WriteImage(sitk.Cast(volume * 100.0, sitk.sitkInt16), str(int_path))
+    float_path = tmp_path / "cbct.nii.gz"
+    sitk.WriteImage(volume, str(float_path))
+    assert prefetch_volumes([int_path, float_path, None, tmp_path, tmp_path / "missing.nii.gz"]) == 2
+    assert prefetch_volumes([int_path]) == 0  # already pending
+    for path in (int_path, float_path):
+        loaded = load_volume(path)
+        assert take_prefetched(path) is None  # taken by load_volume
+        _same_image(loaded, load_volume(path))  # the second load reads the file itself
+    _same_image(load_volume(int_path, pixel_type=None), sitk.ReadImage(str(int_path)))  # int16 kept on request
+    # a file rewritten after its read started is read again
+    assert prefetch_volumes([int_path]) == 1
+    pending = take_prefetched(int_path)
+    assert pending is not None and pending[1] is None  # stored integers: no NaN check (no nibabel import)
+    pending[0].result()
+    prefetch_volumes([int_path])
+    sitk.WriteImage(sitk.Cast(volume * -7.0, sitk.sitkInt16), str(int_path))
+    os.utime(int_path, ns=(1_000_000_000, 1_000_000_000))  # a distinct modification time whatever the clock
+    _same_image(load_volume(int_path), sitk.Cast(sitk.Cast(volume * -7.0, sitk.sitkInt16), sitk.sitkFloat32))
+    # the same errors as an own read
+    corrupt = tmp_path / "corrupt.nii.gz"
+    corrupt.write_bytes(b"not an image at all")
+    prefetch_volumes([corrupt])
+    with pytest.raises(InputError, match="unreadable or corrupt image file"):
+        load_volume(corrupt)
+    arr = sitk.GetArrayFromImage(volume)
+    arr[1, 2, 3] = np.inf
+    bad = sitk.GetImageFromArray(arr)
+    bad.CopyInformation(volume)
+    bad_path = tmp_path / "inf.nii.gz"
+    sitk.WriteImage(bad, str(bad_path))
+    prefetch_volumes([bad_path])
+    with pytest.raises(InputError, match="1 NaN or infinite voxel"):
+        load_volume(bad_path)
+    # which files need the NIfTI NaN check: floats, scaled integers, unreadable headers; not integers, not .mha
+    assert needs_nan_check(float_path) and needs_nan_check(corrupt) and not needs_nan_check(int_path)
+    mha = tmp_path / "v.mha"
+    sitk.WriteImage(volume, str(mha))
+    assert not needs_nan_check(mha)
+    import nibabel as nib
+
+    scaled = nib.Nifti1Image(np.zeros((4, 4, 4), np.int16), np.eye(4))
+    scaled.header.set_slope_inter(0.5, 10.0)
+    nib.save(scaled, str(tmp_path / "scaled.nii.gz"))
+    assert needs_nan_check(tmp_path / "scaled.nii.gz")
+
+
+def test_register_command_starts_reading_both_inputs_before_importing_the_stack():
+    """``register`` with one pair calls prefetch_volumes with --fixed and --moving before it imports the registration
+    modules (a subprocess, so that nothing is imported yet)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, monai_rigidreg.prefetch as pf; seen = []; "
+            "pf.prefetch_volumes = lambda paths: seen.append(([str(p) for p in paths], 'torch' in sys.modules)) or 0; "
+            "from monai_rigidreg.cli import main; "
+            "main(['register', '--fixed', 'nofixed.nii.gz', '--moving', 'nomoving.nii.gz', '--output-dir', 'o', "
+            "'-q']); print(seen)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "[(['nofixed.nii.gz', 'nomoving.nii.gz'], False)]"

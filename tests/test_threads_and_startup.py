@@ -152,3 +152,21 @@ def test_adaptive_threads_without_a_reading_keeps_the_count(monkeypatch):
     counts = iter([5, 2, 4])  # the fewest of the readings, less the caller's own thread
     monkeypatch.setattr(device, "_runnable_tasks", lambda: next(counts))
     assert device.busy_cores(samples=3, interval_s=0.0) == 1
+
+
+def test_version_and_package_import_do_not_import_torch():
+    """``import monai_rigidreg`` and ``monai-rigidreg --version`` import neither torch nor MONAI (the public names
+    load on first use); the geometry names still resolve, to the geometry module's own objects."""
+    import monai_rigidreg
+
+    code = ("import sys, contextlib, io; import monai_rigidreg as m; from monai_rigidreg.cli import main\n"
+            "out = io.StringIO()\n"
+            "with contextlib.redirect_stdout(out):\n"
+            "    try:\n        main(['--version'])\n    except SystemExit as e:\n        code = e.code\n"
+            "print(out.getvalue().strip(), code, 'torch' in sys.modules, 'monai' in sys.modules)\n"
+            "from monai_rigidreg import Grid, params_to_matrix\n"
+            "import monai_rigidreg.geometry as g\n"
+            "print(Grid is g.Grid, params_to_matrix is g.params_to_matrix, 'torch' in sys.modules)")
+    lines = _python(code).splitlines()
+    assert lines[-2] == f"monai-rigidreg {monai_rigidreg.__version__} 0 False False"
+    assert lines[-1] == "True True True"
