@@ -236,6 +236,7 @@ def main() -> None:
                             [sys.executable, "-c", "import monai_rigidreg.registration"]),
                            ("python -c 'import itk' (elastix)",
                             [sys.executable, "-c", "import itk; itk.ElastixRegistrationMethod"]),
+                           ("monai-rigidreg --version", [exe, "--version"]),
                            ("monai-rigidreg register --help", [exe, "register", "--help"])]:
             out(f"| `{label}` | {wall(cmd, 3):.2f} |")
         out(f"\nload average (1/5/15 min): {load_text()}")
