@@ -15,7 +15,7 @@ Prints the median seconds of:
 * the last level's support erosion (``image_ops.erode``, a 102^3 mask, radius 4 voxels) as sliding-window minima
   (0.4.7) and as ``max_pool3d`` of the negated mask;
 * the last level's Gauss-Newton steps (``precision.refine_native``'s four, on the pair from 1 mm / 1 degree off the
-  registration's estimate) over the candidate voxels (``support_reach``, 0.4.8) and over the whole grid, with the
+  registration's estimate) over the candidate voxels (``support_reach``: the field of view, 0.4.8) and over the whole grid, with the
   largest difference of the two estimates (mm at the grid's corners);
 * the command's two slowest outputs, ``registered.nii.gz`` and the QC figure: the volume written in a worker thread
   while the figure is drawn (``outputs.write_outputs``, 0.4.7) and one after the other.
@@ -204,11 +204,11 @@ def main() -> None:
     eye = torch.eye(4, dtype=torch.float64)[None]
     kwargs = dict(iterations=4, weight=weight, moving_support=erode(fov, radius), bias_degree=reg.native_bias_degree,
                   tolerance=getattr(stage, "tolerance", None), secant=getattr(stage, "secant", False))
-    cand = precision.support_reach(fov, radius, level.spacing, weight, precision.REACH_MM)
+    cand, reach = precision.support_reach(fov, radius, level.spacing, weight)
     estimates = {}
 
     def steps(subset: bool) -> None:
-        extra = {"candidates": cand, "reach_mm": precision.REACH_MM} if subset else {}
+        extra = {"candidates": cand, "reach_mm": reach} if subset else {}
         estimates[subset] = gauss_newton_align(feats[:1], feats[1:], level, eye, **kwargs, **extra)[0].numpy()
 
     timed = median_time(lambda: steps(True), args.repeats), median_time(lambda: steps(False), args.repeats)

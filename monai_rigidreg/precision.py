@@ -18,7 +18,6 @@ weight on the CT.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -31,12 +30,7 @@ from monai_rigidreg.image_ops import erode
 from monai_rigidreg.match_region import weight_on_grid
 from monai_rigidreg.networks.gauss_newton import alignment_features, gauss_newton_align
 
-__all__ = ["REACH_MM", "native_grid", "refine_native", "support_reach"]
-
-REACH_MM = 4.0
-"""How far (mm) the last level's steps may move a grid point before its candidate voxels (:func:`support_reach`)
-no longer hold every voxel that can carry weight and the steps go on over the whole grid; the last level moves
-the network's estimate by 0.3 mm typically (``details.native_level.change_mm``)."""
+__all__ = ["native_grid", "refine_native", "support_reach"]
 
 
 def native_grid(fixed: sitk.Image, moving: sitk.Image, matrix: np.ndarray, min_spacing_mm: float = 1.0,
@@ -110,31 +104,31 @@ def refine_native(
     w = weight_on_grid(weights, grid)
     w = None if w is None else w[None].to(device)
     feats = alignment_features(torch.cat([moving_t, fixed_t]), grid.spacing, 1e-3, highpass_sigma_mm, highpass_weight)
+    candidates, reach = support_reach(fov, radius, grid.spacing, w)
     # the support rides with the moving image (it was sampled through the estimate too): identity start
     eye = torch.eye(4, dtype=torch.float64, device=device)[None]
     residual = gauss_newton_align(feats[:1], feats[1:], grid, eye, iterations=iterations, weight=w,
                                   moving_support=support, bias_degree=bias_degree, tolerance=tolerance,
-                                  secant=secant, candidates=support_reach(fov, radius, grid.spacing, w, REACH_MM),
-                                  reach_mm=REACH_MM)
+                                  secant=secant, candidates=candidates, reach_mm=reach)
     return matrix @ residual[0].cpu().numpy(), grid
 
 
 def support_reach(fov: torch.Tensor, radius: Sequence[int], spacing: Sequence[float],
-                  weight: torch.Tensor | None, reach_mm: float) -> torch.Tensor:
-    """The voxels that can carry weight in :func:`refine_native`'s Gauss-Newton steps while the estimate moves no
-    point more than ``reach_mm`` (``gauss_newton_align``'s ``candidates``): ``[1, 1, x, y, z]`` boolean.
+                  weight: torch.Tensor | None) -> tuple[torch.Tensor, float]:
+    """The voxels :func:`refine_native`'s Gauss-Newton steps sum over, and how far the estimate may move while they
+    hold every voxel that can carry weight (``gauss_newton_align``'s ``candidates`` and ``reach_mm``).
 
-    ``fov``: ``[1, 1, x, y, z]`` field of view on the grid, ``radius``: the support's erosion (voxels per axis), so the
-    support is ``erode(fov, radius)``; ``weight``: ``[1, 1, x, y, z]`` or ``None``. A voxel counts where the
-    support warped by the estimate covers it (trilinear value > 0.999), which needs the support voxel nearest to
-    its sampling point, less than ``reach_mm / spacing + 1/2`` voxels away per axis: the voxel lies in the support
-    dilated by ``e = ceil(reach_mm / spacing + 1/2)`` voxels, which is inside ``erode(fov, radius - e)`` (box
-    erosions compose; an opening lies inside the set it opens). Where ``e`` exceeds the erosion on an axis, the
-    whole grid.
+    ``fov``: ``[1, 1, x, y, z]`` field of view (0/1) on the grid; ``radius``: the support's erosion (voxels per
+    axis: the support is ``erode(fov, radius)``); ``weight``: ``[1, 1, x, y, z]`` or ``None``. Returns the
+    ``[1, 1, x, y, z]`` boolean candidates, the field of view where the weight is positive, and
+    ``min_a (radius_a + 1/2) * spacing_a`` (mm).
+
+    Why: a voxel counts where the support warped by the estimate covers it (trilinear value > 0.999), which needs
+    the grid voxel nearest to its sampling point in the support (that voxel's trilinear weight is at least 1/8). A
+    voxel outside the field of view is more than ``radius_a`` voxels from every support voxel along some axis
+    ``a`` (the support is the field of view eroded by a box), so its sampling point must have moved by at least
+    ``(radius_a + 1/2) * spacing_a`` mm.
     """
-    extra = [math.ceil(reach_mm / s + 0.5) for s in spacing]
-    if any(e > r for e, r in zip(extra, radius)):
-        inside = torch.ones_like(fov, dtype=torch.bool)
-    else:
-        inside = erode(fov, [r - e for r, e in zip(radius, extra)]) > 0
-    return inside if weight is None else inside & (weight > 0)
+    inside = fov > 0
+    reach = min((r + 0.5) * s for r, s in zip(radius, spacing))
+    return (inside if weight is None else inside & (weight > 0)), float(reach)

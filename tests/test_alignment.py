@@ -385,8 +385,8 @@ def _truncated_pair(params):
 
 
 def test_gauss_newton_over_the_candidate_voxels_takes_the_dense_steps(monkeypatch):
-    # the last level's candidates (support_reach): the same estimate as over the whole grid, computed at ~half the
-    # voxels; beyond reach_mm the remaining steps use the whole grid
+    # the last level's candidates (support_reach: the field of view where the weight is positive): the same estimate
+    # as over the whole grid, computed at about half the voxels; beyond reach_mm the remaining steps use the whole grid
     params = [1.2, -0.8, 0.6, 0.8, -0.5, 0.7]
     grid, fixed, moving, fov, support, radius, weight = _truncated_pair(params)
     init = torch.eye(4, dtype=torch.float64)[None]
@@ -394,7 +394,8 @@ def test_gauss_newton_over_the_candidate_voxels_takes_the_dense_steps(monkeypatc
     dense = gauss_newton_align(moving, fixed, grid, init, **kwargs)
     err = (matrix_to_params_torch(dense, grid.center())[0] - torch.tensor(params, dtype=torch.float64)).abs().max()
     assert err < 0.3  # from 1.2 mm / 0.8 degrees (the truncated blobs' own fixed point is 0.2 degrees off)
-    cand = support_reach(fov, radius, grid.spacing, weight, 4.0)
+    cand, reach = support_reach(fov, radius, grid.spacing, weight)
+    assert reach == 7.0  # (3 + 1/2) voxels of 2 mm
     assert 0.3 < cand.float().mean() < 0.8
     calls = {"points": 0, "volume": 0}
     for name in ("points", "volume"):
@@ -404,18 +405,19 @@ def test_gauss_newton_over_the_candidate_voxels_takes_the_dense_steps(monkeypatc
             calls[_name] += 1
             return _real(*a, **k)
         monkeypatch.setattr(gauss_newton_module, f"warp_{name}", counted)
-    subset = gauss_newton_align(moving, fixed, grid, init, candidates=cand, reach_mm=4.0, **kwargs)
+    subset = gauss_newton_align(moving, fixed, grid, init, candidates=cand, reach_mm=reach, **kwargs)
     assert calls == {"points": 4, "volume": 0}
     torch.testing.assert_close(subset, dense, atol=1e-5, rtol=0)
-    # reach 0: the first step over the candidates, the estimate then leaves the reach and the whole grid takes over
+    # a reach of 1e-9 mm: the first step over the candidates, the estimate then leaves the reach and the whole grid
+    # takes over
     calls.update(points=0, volume=0)
-    fallback = gauss_newton_align(moving, fixed, grid, init, candidates=cand, reach_mm=0.0, **kwargs)
+    fallback = gauss_newton_align(moving, fixed, grid, init, candidates=cand, reach_mm=1e-9, **kwargs)
     assert calls == {"points": 1, "volume": 3}
     torch.testing.assert_close(fallback, dense, atol=1e-5, rtol=0)
     # the candidates are what the steps use: missing voxels that carry weight change the estimate
     half = cand.clone()
     half[..., 18:] = False
-    partial = gauss_newton_align(moving, fixed, grid, init, candidates=half, reach_mm=4.0, **kwargs)
+    partial = gauss_newton_align(moving, fixed, grid, init, candidates=half, reach_mm=reach, **kwargs)
     assert (partial - dense).abs().max() > 1e-3
     with pytest.raises(ValueError, match="one case"):
         gauss_newton_align(moving.repeat(2, 1, 1, 1, 1), fixed.repeat(2, 1, 1, 1, 1), grid, init.repeat(2, 1, 1),

@@ -199,6 +199,15 @@ def gauss_newton_align(
             the CT's (blur, noise), ``J^T J`` from the CT over-estimates the curvature and every step covers only a
             fraction ``a`` of the remaining error: the iteration contracts linearly by
             ``1 - a`` per step. The scaled steps keep the same fixed point and reach it in fewer steps.
+        candidates: optional ``[1, 1, x, y, z]`` boolean mask (one case, ``jacobian="fixed"``) holding every voxel
+            that can carry weight while the estimate moves every point of the grid less than ``reach_mm`` from
+            where ``init`` puts it: where ``weight`` is positive and the warped ``moving_support`` can cover
+            (:func:`~monai_rigidreg.precision.support_reach`). The steps are computed over these voxels only
+            (:func:`~monai_rigidreg.warp.warp_points`), the same sums as over the whole grid, the other voxels'
+            weights being zero; once the estimate has moved a corner of the grid ``reach_mm`` or more from
+            ``init``'s, the remaining steps use the whole grid. The last level's grid covers the CBCT's box, about
+            a third of it outside its cylindrical field of view (``benchmarks/bench_network_paths.py``).
+        reach_mm: see ``candidates``.
 
     Returns:
         ``[B, 4, 4]`` float64 refined matrices; with ``return_residual`` also two ``[B]`` tensors at the returned
@@ -322,7 +331,7 @@ class _Subset:
     """The candidate voxels of :func:`gauss_newton_align` (one case) and what a step needs at them: ``index`` ``[K]``
     flat voxel indices, ``points`` ``[K, 3]`` their voxel indices, ``fixed`` ``[1, C, K]``, ``jacobian``
     ``[1, 6, C*K]`` (:func:`fixed_jacobian` there), ``weight`` ``[1, 1, K]`` (or ``None``); :meth:`within_reach`
-    tells whether an estimate keeps every grid point within ``reach_mm`` of where ``init`` puts it."""
+    tells whether an estimate moves every grid point less than ``reach_mm`` from where ``init`` puts it."""
 
     def __init__(self, candidates: torch.Tensor, grid: Grid, init: torch.Tensor, reach_mm: float,
                  fixed: torch.Tensor, weight: torch.Tensor | None, jacobian: str, robust_scale: float | None) -> None:
@@ -351,10 +360,10 @@ class _Subset:
         self._reach = float(reach_mm)
 
     def within_reach(self, total: torch.Tensor) -> bool:
-        """Whether ``total`` ``[1, 4, 4]`` moves no grid point more than ``reach_mm`` from ``init``'s image of it (the
-        displacement between two affine maps is largest at a corner of the grid's box)."""
+        """Whether ``total`` ``[1, 4, 4]`` moves every grid point less than ``reach_mm`` from ``init``'s image of it
+        (the displacement between two affine maps is largest at a corner of the grid's box)."""
         moved = self._corners @ total[0].detach().to(torch.float64).T - self._start
-        return bool(moved[:, :3].norm(dim=1).amax() <= self._reach)
+        return bool(moved[:, :3].norm(dim=1).amax() < self._reach)
 
 
 def _with_bias_terms(h: torch.Tensor, g: torch.Tensor, wj: torch.Tensor, w: torch.Tensor, r: torch.Tensor,
