@@ -15,8 +15,8 @@ Prints the median seconds of:
 * the last level's support erosion (``image_ops.erode``, a 102^3 mask, radius 4 voxels) as sliding-window minima
   (0.4.7) and as ``max_pool3d`` of the negated mask;
 * the last level's Gauss-Newton steps (``precision.refine_native``'s four, on the pair from 1 mm / 1 degree off the
-  registration's estimate) over the candidate voxels (``support_reach``: the field of view, 0.4.8) and over the whole grid, with the
-  largest difference of the two estimates (mm at the grid's corners);
+  registration's estimate) over the candidate voxels (``support_reach``: the field of view, 0.4.8) and over the
+  whole grid, with the largest difference of the two estimates (mm at the grid's corners);
 * the command's two slowest outputs, ``registered.nii.gz`` and the QC figure: the volume written in a worker thread
   while the figure is drawn (``outputs.write_outputs``, 0.4.7) and one after the other.
 

@@ -24,7 +24,8 @@ import SimpleITK as sitk
 
 from monai_rigidreg.errors import InputError
 
-__all__ = ["check_nifti_finite", "is_nifti", "needs_nan_check", "prefetch_volumes", "take_prefetched"]
+__all__ = ["check_nifti_finite", "drop_prefetched", "is_nifti", "needs_nan_check", "prefetch_volumes",
+           "take_prefetched"]
 
 _FLOAT_PIXELS = {sitk.sitkFloat32, sitk.sitkFloat64, sitk.sitkVectorFloat32, sitk.sitkVectorFloat64,
                  sitk.sitkComplexFloat32, sitk.sitkComplexFloat64}
@@ -125,3 +126,21 @@ def take_prefetched(path: str | Path) -> tuple[Future, Future | None] | None:
         for stale in [k for k in _PENDING if k[0] == key[0]]:
             _PENDING.pop(stale)
     return pending
+
+
+def drop_prefetched(paths: Iterable[str | Path | None]) -> int:
+    """Forget the pending reads of ``paths`` (any version of the file; a running read finishes on its own and its
+    image is freed), e.g. after a command that failed before it loaded them. Returns how many were pending."""
+    names = set()
+    for path in paths:
+        if path is None:
+            continue
+        try:
+            names.add(str(Path(path).resolve()))
+        except OSError:
+            continue
+    with _LOCK:
+        stale = [k for k in _PENDING if k[0] in names]
+        for key in stale:
+            _PENDING.pop(key)
+    return len(stale)

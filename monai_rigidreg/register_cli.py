@@ -75,11 +75,21 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
-    # one pair: its two files are read while the registration stack (torch: about 0.9 s) is imported below
-    if args.datalist is None:
-        from monai_rigidreg.prefetch import prefetch_volumes
+    if args.datalist is not None:
+        return _run_pairs(args)
+    # one pair: its two files are read while the registration stack (torch: about 0.9 s) is imported; a read the
+    # run did not take (it failed first) is dropped with its image
+    from monai_rigidreg.prefetch import drop_prefetched, prefetch_volumes
 
-        prefetch_volumes([args.fixed, args.moving])
+    prefetch_volumes([args.fixed, args.moving])
+    try:
+        return _run_pairs(args)
+    finally:
+        drop_prefetched([args.fixed, args.moving])
+
+
+def _run_pairs(args: argparse.Namespace) -> int:
+    """:func:`run` once its inputs' reads are started: the batch (``--datalist``) or the one pair."""
     # imported here, not at the top: `monai-rigidreg --help` imports every sub-command module to build its parser,
     # and the registration stack pulls in MONAI (python -c "import monai_rigidreg.registration": 3-5 s on 2 cores,
     # against about 1.5 s for the package's own import, mostly torch)

@@ -294,7 +294,7 @@ def test_prefetched_reads_are_what_load_volume_reads_and_go_through_its_checks(t
     voxels with the same errors."""
     import os
 
-    from monai_rigidreg.prefetch import needs_nan_check, prefetch_volumes, take_prefetched
+    from monai_rigidreg.prefetch import drop_prefetched, needs_nan_check, prefetch_volumes, take_prefetched
 
     int_path = tmp_path / "ct.nii.gz"
     sitk.WriteImage(sitk.Cast(volume * 100.0, sitk.sitkInt16), str(int_path))
@@ -342,6 +342,10 @@ def test_prefetched_reads_are_what_load_volume_reads_and_go_through_its_checks(t
     scaled.header.set_slope_inter(0.5, 10.0)
     nib.save(scaled, str(tmp_path / "scaled.nii.gz"))
     assert needs_nan_check(tmp_path / "scaled.nii.gz")
+    # a read nobody takes can be dropped (the register command drops its own when it fails first)
+    assert prefetch_volumes([int_path, float_path]) == 2
+    assert drop_prefetched([int_path, float_path, None]) == 2
+    assert take_prefetched(int_path) is None and take_prefetched(float_path) is None
 
 
 def test_register_command_starts_reading_both_inputs_before_importing_the_stack():
@@ -357,3 +361,19 @@ def test_register_command_starts_reading_both_inputs_before_importing_the_stack(
             "'-q']); print(seen)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip().splitlines()[-1] == "[(['nofixed.nii.gz', 'nomoving.nii.gz'], False)]"
+
+
+def test_a_register_run_that_fails_first_leaves_no_pending_read(tmp_path, volume):
+    """The output folder is refused after the reads started: the run ends with the usual error and drops them."""
+    from monai_rigidreg.cli import main
+    from monai_rigidreg.prefetch import _PENDING
+
+    fixed, moving = tmp_path / "ct.nii.gz", tmp_path / "cbct.nii.gz"
+    sitk.WriteImage(volume, str(fixed))
+    sitk.WriteImage(volume, str(moving))
+    taken = tmp_path / "out"
+    taken.mkdir()
+    (taken / "keep.txt").write_text("not ours")
+    assert main(["register", "--fixed", str(fixed), "--moving", str(moving), "--output-dir", str(taken), "-q"]) == 2
+    assert not [k for k in _PENDING if k[0] in (str(fixed.resolve()), str(moving.resolve()))]
+    assert (taken / "keep.txt").read_text() == "not ours"
