@@ -14,9 +14,11 @@ Prints the median seconds of:
   closing and dilation as numpy shifted ORs / ANDs of the ball (0.4.7) and as ITK's filters;
 * the last level's support erosion (``image_ops.erode``, a 102^3 mask, radius 4 voxels) as sliding-window minima
   (0.4.7) and as ``max_pool3d`` of the negated mask;
-* the last level's Gauss-Newton steps (``precision.refine_native``'s four, on the pair from 1 mm / 1 degree off the
+* the last level's Gauss-Newton steps (``precision.refine_native``'s four, from 1 mm / 1 degree off the
   registration's estimate) over the candidate voxels (``support_reach``: the field of view, 0.4.8) and over the
-  whole grid, with the largest difference of the two estimates (mm at the grid's corners);
+  whole grid, with the largest difference of the two estimates (mm at the grid's corners): on the pair, and on a
+  paper-protocol pair of ``bench_real_ct.py`` (``bench_out/real_ct``) whose field of view fills its grid, where the
+  dense steps are cheaper (``precision.CANDIDATE_SHARE_MAX``);
 * the command's two slowest outputs, ``registered.nii.gz`` and the QC figure: the volume written in a worker thread
   while the figure is drawn (``outputs.write_outputs``, 0.4.7) and one after the other.
 
@@ -188,36 +190,50 @@ def main() -> None:
     from monai_rigidreg.match_region import weight_on_grid
     from monai_rigidreg.networks.gauss_newton import alignment_features, gauss_newton_align
 
-    result = reg(fixed, moving, assess=False, resample_moving=False)
-    start = params_to_matrix(result.params, result.center) @ params_to_matrix([1.0, -1.0, 1.0, 1.0, -1.0, 1.0],
-                                                                              result.center)
-    stage = reg.network.fine_stage
-    level = precision.native_grid(fixed, moving, start)
-    lo, hi = -1200.0, 2000.0
-    fixed_t = normalize_hu(sitk_on_grid(fixed, level, "bilinear", lo), lo, hi)[None]
-    moving_t = normalize_hu(sitk_on_grid(moving, level, "bilinear", lo, matrix=start), lo, hi)[None]
-    fov = (sitk_on_grid(cylindrical_fov_mask(moving), level, "nearest", 0.0, matrix=start) > 0).float()[None]
-    radius = [max(1, round(stage.support_erosion_mm / s)) for s in level.spacing]
-    weight = weight_on_grid([body], level)[None]
-    feats = alignment_features(torch.cat([moving_t, fixed_t]), level.spacing, 1e-3, stage.highpass_sigma_mm,
-                               stage.highpass_weight)
-    eye = torch.eye(4, dtype=torch.float64)[None]
-    kwargs = dict(iterations=4, weight=weight, moving_support=erode(fov, radius), bias_degree=reg.native_bias_degree,
-                  tolerance=getattr(stage, "tolerance", None), secant=getattr(stage, "secant", False))
-    cand, reach = precision.support_reach(fov, radius, level.spacing, weight)
-    estimates = {}
+    def last_level_row(ct: sitk.Image, cbct: sitk.Image, fov_image: sitk.Image, label: str) -> None:
+        result = reg(ct, cbct, assess=False, resample_moving=False, moving_fov=fov_image)
+        start = params_to_matrix(result.params, result.center) @ params_to_matrix([1.0, -1.0, 1.0, 1.0, -1.0, 1.0],
+                                                                                  result.center)
+        stage = reg.network.fine_stage
+        level = precision.native_grid(ct, cbct, start)
+        lo, hi = -1200.0, 2000.0
+        fixed_t = normalize_hu(sitk_on_grid(ct, level, "bilinear", lo), lo, hi)[None]
+        moving_t = normalize_hu(sitk_on_grid(cbct, level, "bilinear", lo, matrix=start), lo, hi)[None]
+        fov = (sitk_on_grid(fov_image, level, "nearest", 0.0, matrix=start) > 0).float()[None]
+        radius = [max(1, round(stage.support_erosion_mm / s)) for s in level.spacing]
+        weight = weight_on_grid([reg._bodies(ct)], level)[None]
+        feats = alignment_features(torch.cat([moving_t, fixed_t]), level.spacing, 1e-3, stage.highpass_sigma_mm,
+                                   stage.highpass_weight)
+        eye = torch.eye(4, dtype=torch.float64)[None]
+        kwargs = dict(iterations=4, weight=weight, moving_support=erode(fov, radius),
+                      bias_degree=reg.native_bias_degree, tolerance=getattr(stage, "tolerance", None),
+                      secant=getattr(stage, "secant", False))
+        cand, reach = precision.support_reach(fov, radius, level.spacing, weight)
+        estimates = {}
 
-    def steps(subset: bool) -> None:
-        extra = {"candidates": cand, "reach_mm": reach} if subset else {}
-        estimates[subset] = gauss_newton_align(feats[:1], feats[1:], level, eye, **kwargs, **extra)[0].numpy()
+        def steps(subset: bool) -> None:
+            extra = {"candidates": cand, "reach_mm": reach} if subset else {}
+            estimates[subset] = gauss_newton_align(feats[:1], feats[1:], level, eye, **kwargs, **extra)[0].numpy()
 
-    timed = median_time(lambda: steps(True), args.repeats), median_time(lambda: steps(False), args.repeats)
-    corners = np.array([[a, b, c, 1.0] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
-    corners[:, :3] *= np.asarray(level.size) - 1
-    corners = corners @ level.index_to_physical().T
-    apart = np.abs(corners @ (estimates[True] - estimates[False]).T)[:, :3].max()
-    rows.append((f"last level's steps, {level.size[0]}^3 ({100 * float(cand.float().mean()):.0f}% candidates, "
-                 f"estimates {apart:.1e} mm apart): candidate voxels | whole grid", *timed))
+        timed = median_time(lambda: steps(True), args.repeats), median_time(lambda: steps(False), args.repeats)
+        corners = np.array([[a, b, c, 1.0] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+        corners[:, :3] *= np.asarray(level.size) - 1
+        corners = corners @ level.index_to_physical().T
+        apart = np.abs(corners @ (estimates[True] - estimates[False]).T)[:, :3].max()
+        rows.append((f"last level's steps, {label}, {level.size[0]}^3, {100 * float(cand.float().mean()):.0f}% "
+                     f"candidates (estimates {apart:.0e} mm apart): candidate voxels | whole grid", *timed))
+
+    last_level_row(fixed, moving, cylindrical_fov_mask(moving), "this pair")
+    paper = Path("bench_out/real_ct/head_tigre_ct")
+    if (paper / "dataset.json").is_file():  # a paper-protocol pair (64^3 CBCT): its field of view fills the grid
+        import json
+
+        item = json.loads((paper / "dataset.json").read_text())["training"][3]
+        last_level_row(sitk.ReadImage(str(paper / item["fixed"]), sitk.sitkFloat32),
+                       sitk.ReadImage(str(paper / item["moving"]), sitk.sitkFloat32),
+                       sitk.ReadImage(str(paper / item["moving_fov"])), f"paper protocol {item['case_id']}")
+    else:
+        print(f"(no {paper}/dataset.json: python benchmarks/bench_real_ct.py makes it; its last-level row skipped)")
 
     from concurrent.futures import ThreadPoolExecutor
 

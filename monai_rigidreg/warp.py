@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from monai_rigidreg.geometry import Grid, normalized_theta, params_to_matrix_torch
 
-__all__ = ["warp_points", "warp_volume", "warp_volume_many", "warp_volume_params"]
+__all__ = ["normalized_points", "warp_points", "warp_volume", "warp_volume_many", "warp_volume_params"]
 
 MODES = ("bilinear", "nearest")
 PADDING_MODES = ("zeros", "border", "reflection")
@@ -97,11 +97,24 @@ def warp_points(
     if mode not in MODES or padding_mode not in PADDING_MODES:
         raise ValueError(f"mode must be one of {MODES} and padding_mode one of {PADDING_MODES}, got {mode!r}, "
                          f"{padding_mode!r}")
+    return _sample_normalized(moving, matrix, normalized_points(points, fixed_grid, moving.dtype), fixed_grid,
+                              moving_grid, mode, padding_mode)
+
+
+def normalized_points(points: torch.Tensor, grid: Grid, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Voxel indices ``[K, 3]`` ``(i, j, k)`` of ``grid`` -> ``grid_sample``'s normalized coordinates ``[K, 3]``
+    (``align_corners=True``; component ``g`` addresses index axis ``2 - g``, as ``affine_grid`` lays them out)."""
+    half = torch.as_tensor([max(n - 1, 1) / 2.0 for n in grid.size], dtype=dtype, device=points.device)
+    return (points.to(dtype) / half - 1.0).flip(1)
+
+
+def _sample_normalized(moving: torch.Tensor, matrix: torch.Tensor, normalized: torch.Tensor, fixed_grid: Grid,
+                       moving_grid: Grid, mode: str = "bilinear", padding_mode: str = "zeros") -> torch.Tensor:
+    """:func:`warp_points` from the points' :func:`normalized_points` (computed once by a caller that samples the
+    same points under many matrices): ``[B, C, K]``."""
     theta = normalized_theta(matrix.to(torch.float64), fixed_grid, moving_grid, "xyz").to(moving.dtype)  # [B, 3, 4]
-    # normalized fixed coordinates, grid component g addressing index axis 2 - g (as affine_grid lays them out)
-    half = torch.as_tensor([max(n - 1, 1) / 2.0 for n in fixed_grid.size], dtype=moving.dtype, device=moving.device)
-    norm = (points.to(moving.dtype) / half - 1.0).flip(1)  # [K, 3]
-    sample_at = norm @ theta[:, :, :3].transpose(1, 2) + theta[:, None, :, 3]  # [B, K, 3]
+    sample_at = torch.baddbmm(theta[:, None, :, 3], normalized.expand(theta.shape[0], -1, -1),
+                              theta[:, :, :3].transpose(1, 2))  # [B, K, 3]
     out = F.grid_sample(moving.contiguous(), sample_at[:, None, None], mode=mode, padding_mode=padding_mode,
                         align_corners=True)  # [B, C, 1, 1, K]
     return out[:, :, 0, 0]

@@ -164,3 +164,34 @@ def test_support_reach_holds_every_voxel_the_moved_support_covers(spacing):
     weight = torch.ones_like(fov)
     weight[..., :5] = 0.0
     assert not support_reach(fov, radius, spacing, weight)[0][..., :5].any()
+
+
+def test_refine_native_sums_over_the_field_of_view_only_where_it_leaves_enough_out(monkeypatch):
+    # the candidates go to the steps where they are at most CANDIDATE_SHARE_MAX of the grid (a cylinder in its box),
+    # not where the field of view fills the grid (the dense steps are cheaper there); the estimate is the same
+    import monai_rigidreg.precision as precision
+
+    iso = np.array([10.0, -20.0, 5.0])
+    truth_iso = [2.0, -1.0, 1.5, 1.0, -0.5, 1.0]
+    ct, cbct, truth = _pair(truth_iso, iso)
+    seen = []
+    real = precision.gauss_newton_align
+
+    def spy(*args, **kwargs):
+        cand = kwargs.get("candidates")
+        seen.append(None if cand is None else float(cand.float().mean()))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(precision, "gauss_newton_align", spy)
+    cylinder = cylindrical_fov_mask(cbct)
+    everywhere = sitk.Cast(cbct * 0 + 1, sitk.sitkUInt8)
+    refined, _ = refine_native(ct, cbct, np.eye(4), cylinder)
+    full, _ = refine_native(ct, cbct, np.eye(4), everywhere)
+    assert seen[0] is not None and seen[0] <= precision.CANDIDATE_SHARE_MAX
+    assert seen[1] is None
+    monkeypatch.setattr(precision, "CANDIDATE_SHARE_MAX", 0.0)  # the same case with the dense steps
+    dense, _ = refine_native(ct, cbct, np.eye(4), cylinder)
+    assert seen[2] is None
+    box = np.stack(np.meshgrid(*[np.linspace(-50, 50, 5)] * 3, indexing="ij"), -1).reshape(-1, 3) + iso
+    assert _mean_distance(refined, dense, box) < 1e-4
+    assert _mean_distance(refined, truth, box) < 0.3 and _mean_distance(full, truth, box) < 0.5

@@ -32,7 +32,7 @@ from monai_rigidreg.geometry import (
     params_to_matrix_torch,
 )
 from monai_rigidreg.image_ops import erode, gradient_magnitude, local_mean, pyramid
-from monai_rigidreg.warp import warp_points, warp_volume
+from monai_rigidreg.warp import _sample_normalized, normalized_points, warp_volume
 
 __all__ = [
     "GaussNewtonStage",
@@ -75,10 +75,11 @@ def _parameter_derivative(grid: Grid) -> np.ndarray:
     return (mats[:6] - mats[6:])[:, :3, :] / (2 * h)
 
 
-def fixed_jacobian(fixed: torch.Tensor, grid: Grid, index: torch.Tensor | None = None) -> torch.Tensor:
+def fixed_jacobian(fixed: torch.Tensor, grid: Grid, index: torch.Tensor | None = None,
+                   points: torch.Tensor | None = None) -> torch.Tensor:
     """``d fixed(W_p(x)) / dp`` at ``p = 0``: ``[B, 6, C, x, y, z]`` (per mm and per degree); with ``index`` (``[K]``
     flat voxel indices of the grid) at those voxels only: ``[B, 6, C, K]`` (the gradients are taken over the whole
-    grid, the rest is formed at the ``K`` voxels).
+    grid, the rest is formed at the ``K`` voxels; ``points``: their voxel indices ``[K, 3]``, if at hand).
 
     Chain rule: the physical image gradient (central differences along the array axes, mapped through the
     grid's index-to-physical matrix) times :func:`parameter_flow`. ``fixed`` is in MONAI ``xyz`` layout on ``grid``.
@@ -98,7 +99,8 @@ def fixed_jacobian(fixed: torch.Tensor, grid: Grid, index: torch.Tensor | None =
             [n if a == i else 1 for a in range(3)]) for i, n in enumerate(grid.size)]
     else:
         g_idx = [g.flatten(2)[:, :, index] for g in g_idx]  # 3 x [B, C, K]
-        ramps = [u.to(fixed.dtype) - (n - 1) / 2.0 for u, n in zip(voxel_indices(index, grid.size), grid.size)]
+        at = voxel_indices(index, grid.size) if points is None else points.unbind(1)
+        ramps = [u.to(fixed.dtype) - (n - 1) / 2.0 for u, n in zip(at, grid.size)]
 
     def combine(coefs: np.ndarray) -> torch.Tensor | None:
         terms = [float(c) * g for c, g in zip(coefs, g_idx) if c != 0.0]
@@ -239,7 +241,7 @@ def gauss_newton_align(
             subset = None
             jac_fixed = fixed_jacobian(fixed.detach(), grid).flatten(2)
         if subset is not None:
-            both = warp_points(stacked, total, subset.points, grid, grid)  # [1, C + 1, K]
+            both = _sample_normalized(stacked, total, subset.normalized, grid, grid)  # [1, C + 1, K]
             warped, cover = both[:, :n_ch], both[:, n_ch:]
             w = (cover > 0.999).to(moving.dtype)
             if subset.weight is not None:
@@ -329,7 +331,7 @@ def voxel_indices(index: torch.Tensor, size: Sequence[int]) -> tuple[torch.Tenso
 
 class _Subset:
     """The candidate voxels of :func:`gauss_newton_align` (one case) and what a step needs at them: ``index`` ``[K]``
-    flat voxel indices, ``points`` ``[K, 3]`` their voxel indices, ``fixed`` ``[1, C, K]``, ``jacobian``
+    flat voxel indices, ``normalized`` ``[K, 3]`` their sampling coordinates, ``fixed`` ``[1, C, K]``, ``jacobian``
     ``[1, 6, C*K]`` (:func:`fixed_jacobian` there), ``weight`` ``[1, 1, K]`` (or ``None``); :meth:`within_reach`
     tells whether an estimate moves every grid point less than ``reach_mm`` from where ``init`` puts it."""
 
@@ -348,9 +350,10 @@ class _Subset:
         n_ch, n_vox = fixed.shape[1], fixed[0, 0].numel()
         self.index = candidates.reshape(-1).nonzero().squeeze(1)
         self.count = int(self.index.numel())
-        self.points = torch.stack(voxel_indices(self.index, grid.size), 1).to(fixed.dtype)
+        points = torch.stack(voxel_indices(self.index, grid.size), 1).to(fixed.dtype)
+        self.normalized = normalized_points(points, grid, fixed.dtype)  # sampled under every step's estimate
         self.fixed = fixed.reshape(1, n_ch, n_vox)[:, :, self.index]
-        self.jacobian = fixed_jacobian(fixed.detach(), grid, self.index).reshape(1, 6, n_ch * self.count)
+        self.jacobian = fixed_jacobian(fixed.detach(), grid, self.index, points).reshape(1, 6, n_ch * self.count)
         self.weight = None if weight is None else weight.reshape(1, 1, n_vox)[:, :, self.index]
         corners = np.array([[a, b, c, 1.0] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
         corners[:, :3] *= np.asarray(grid.size, dtype=np.float64) - 1
