@@ -53,17 +53,22 @@ def warp_volume(
     return F.grid_sample(moving.contiguous(), sample_at, mode=mode, padding_mode=padding_mode, align_corners=True)
 
 
-def _sample_points(moving: torch.Tensor, matrices: torch.Tensor, fixed_grid: Grid, moving_grid: Grid, mode: str,
-                   padding_mode: str, array_order: str) -> torch.Tensor:
-    """The checks :func:`warp_volume` and :func:`warp_volume_many` share (``moving``'s spatial shape against its
-    grid, the modes) and ``grid_sample``'s sampling points of the ``K`` fixed -> moving ``matrices``:
-    ``[K, *fixed spatial, 3]`` in ``moving``'s dtype."""
+def _check_moving(moving: torch.Tensor, moving_grid: Grid, mode: str, padding_mode: str, array_order: str) -> None:
+    """``moving``'s spatial shape against its grid (in ``array_order``) and the sampling modes."""
     expected = tuple(moving_grid.size) if array_order == "xyz" else tuple(moving_grid.size)[::-1]
     if tuple(moving.shape[2:]) != expected:
         raise ValueError(f"moving spatial shape {tuple(moving.shape[2:])} does not match its grid {expected}")
     if mode not in MODES or padding_mode not in PADDING_MODES:
         raise ValueError(f"mode must be one of {MODES} and padding_mode one of {PADDING_MODES}, got {mode!r}, "
                          f"{padding_mode!r}")
+
+
+def _sample_points(moving: torch.Tensor, matrices: torch.Tensor, fixed_grid: Grid, moving_grid: Grid, mode: str,
+                   padding_mode: str, array_order: str) -> torch.Tensor:
+    """The checks :func:`warp_volume` and :func:`warp_volume_many` share (``moving``'s spatial shape against its
+    grid, the modes) and ``grid_sample``'s sampling points of the ``K`` fixed -> moving ``matrices``:
+    ``[K, *fixed spatial, 3]`` in ``moving``'s dtype."""
+    _check_moving(moving, moving_grid, mode, padding_mode, array_order)
     theta = normalized_theta(matrices.to(torch.float64), fixed_grid, moving_grid, array_order).to(moving.dtype)
     out_size = tuple(fixed_grid.size) if array_order == "xyz" else tuple(fixed_grid.size)[::-1]
     return F.affine_grid(theta[:, :3], [matrices.shape[0], moving.shape[1], *out_size], align_corners=True)
@@ -92,11 +97,7 @@ def warp_points(
         raise ValueError(f"batch of matrix ({matrix.shape[0]}) and moving ({moving.shape[0]}) differ")
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must be [K, 3] voxel indices, got shape {tuple(points.shape)}")
-    if tuple(moving.shape[2:]) != tuple(moving_grid.size):
-        raise ValueError(f"moving spatial shape {tuple(moving.shape[2:])} does not match its grid {moving_grid.size}")
-    if mode not in MODES or padding_mode not in PADDING_MODES:
-        raise ValueError(f"mode must be one of {MODES} and padding_mode one of {PADDING_MODES}, got {mode!r}, "
-                         f"{padding_mode!r}")
+    _check_moving(moving, moving_grid, mode, padding_mode, "xyz")
     return _sample_normalized(moving, matrix, normalized_points(points, fixed_grid, moving.dtype), fixed_grid,
                               moving_grid, mode, padding_mode)
 
