@@ -12,6 +12,8 @@ Prints the median seconds of:
   template at a time (``masked_ncc_map``);
 * the CT's body mask (``coarse_body_mask``, what the registration computes once per CT) with the binary opening,
   closing and dilation as numpy shifted ORs / ANDs of the ball (0.4.7) and as ITK's filters;
+* the key of the body-mask cache (``body.image_key``, a digest of the CT's voxels) with SHA-256 (0.4.8) and with
+  BLAKE2b;
 * the last level's support erosion (``image_ops.erode``, a 102^3 mask, radius 4 voxels) as sliding-window minima
   (0.4.7) and as ``max_pool3d`` of the negated mask;
 * the last level's Gauss-Newton steps (``precision.refine_native``'s four, from 1 mm / 1 degree off the
@@ -168,6 +170,15 @@ def main() -> None:
     finally:
         body_module._opening, body_module._closing, body_module._dilate = saved
     rows.append((f"CT body mask {fixed.GetSize()}: numpy ball morphology | ITK filters", ours, itk))
+
+    import hashlib
+
+    from monai_rigidreg.body import image_key
+
+    voxels = np.ascontiguousarray(sitk.GetArrayViewFromImage(fixed)).data
+    rows.append((f"CT image key (body-mask cache) {fixed.GetSize()}: SHA-256 | BLAKE2b",
+                 median_time(lambda: image_key(fixed), args.repeats),
+                 median_time(lambda: hashlib.blake2b(voxels, digest_size=16).hexdigest(), args.repeats)))
 
     from monai_rigidreg.image_ops import erode
 
