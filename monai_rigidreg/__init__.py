@@ -12,6 +12,7 @@ inputs while torch is imported (:mod:`monai_rigidreg.prefetch`).
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import os
 import sys
 from typing import Any
@@ -40,17 +41,7 @@ _LAZY = {
     "NetworkGridSpec": "monai_rigidreg.network_grid",
 }
 
-__all__ = [
-    "__version__",
-    "PARAM_NAMES",
-    "Grid",
-    "matrix_to_params",
-    "params_to_matrix",
-    "params_to_sitk",
-    "sitk_to_params",
-    "target_registration_error",
-    *_LAZY,
-]
+__all__ = ["__version__", *_LAZY]
 
 
 def __getattr__(name: str) -> Any:
@@ -58,6 +49,10 @@ def __getattr__(name: str) -> Any:
         value = getattr(importlib.import_module(_LAZY[name]), name)
         globals()[name] = value  # later look-ups skip this hook
         return value
+    # a submodule named as an attribute (``monai_rigidreg.geometry`` after a plain ``import monai_rigidreg``, as in a
+    # MONAI config's "$monai_rigidreg.geometry..." expression) is imported then, as the eager import used to provide
+    if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
+        return importlib.import_module(f"{__name__}.{name}")
     raise AttributeError(f"module 'monai_rigidreg' has no attribute {name!r}")
 
 

@@ -107,8 +107,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``monai-rigidreg`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
     command = _command_in(argv)
-    # --version alone needs no sub-command: building them all imports torch and MONAI (about 4 s on 2 cores)
-    parser = build_parser(command, with_commands=command is not None or "--version" not in argv)
+    # --version among options alone needs no sub-command: building them all imports torch and MONAI (about 4 s on
+    # 2 cores); with a word that is no command, or --help, argparse needs them to say what the commands are
+    version_only = ("--version" in argv and all(a.startswith("-") for a in argv)
+                    and not {"-h", "--help"} & set(argv))
+    parser = build_parser(command, with_commands=not version_only)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=log_level(args.verbose, args.quiet),

@@ -6,7 +6,8 @@ the other core meanwhile. :func:`prefetch_volumes` starts those reads (this modu
 package's geometry, so it runs before them); :func:`~monai_rigidreg.io.load_volume` takes a read that was started
 for its path (:func:`take_prefetched`) instead of reading again, and applies every check it applies to its own
 reads. A read fails the same way in both: where the prefetched one raised, ``load_volume`` reads the file again and
-reports the error itself. A file changed after its read started (size or modification time) is read again.
+reports the error itself. A file changed after its read started (size, modification time, inode or status-change
+time) is read again.
 Measured by ``benchmarks/bench_speed.py`` (the command-line rows).
 
 Frames and values are untouched: the image is what ``SimpleITK.ReadImage`` returns.
@@ -15,6 +16,7 @@ Frames and values are untouched: the image is what ``SimpleITK.ReadImage`` retur
 from __future__ import annotations
 
 import threading
+import zlib
 from collections.abc import Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -31,7 +33,7 @@ _FLOAT_PIXELS = {sitk.sitkFloat32, sitk.sitkFloat64, sitk.sitkVectorFloat32, sit
                  sitk.sitkComplexFloat32, sitk.sitkComplexFloat64}
 
 _LOCK = threading.Lock()
-_PENDING: dict[tuple[str, int, int], tuple[Future, Future | None]] = {}
+_PENDING: dict[tuple[str, int, int, int, int], tuple[Future, Future | None]] = {}
 
 
 def is_nifti(path: Path) -> bool:
@@ -72,18 +74,25 @@ def check_nifti_finite(path: Path) -> None:
         return
     if not np.issubdtype(img.get_data_dtype(), np.floating):
         return
-    bad = int(np.count_nonzero(~np.isfinite(np.asanyarray(img.dataobj))))
+    try:
+        data = np.asanyarray(img.dataobj)
+    except (EOFError, OSError, ValueError, zlib.error) as exc:  # e.g. a truncated .nii.gz that ITK read without error
+        raise InputError(f"unreadable or corrupt image file (its voxel data: {type(exc).__name__}: {exc})",
+                         path) from exc
+    bad = int(np.count_nonzero(~np.isfinite(data)))
     if bad:
         raise InputError(f"volume has {bad} NaN or infinite voxel(s)", path)
 
 
-def _key(path: Path) -> tuple[str, int, int] | None:
-    """The file's resolved path, modification time (ns) and size; ``None`` for anything but a regular file."""
+def _key(path: Path) -> tuple[str, int, int, int, int] | None:
+    """The file's resolved path, modification time (ns), size, inode and status-change time (ns: a file replaced by
+    one with the same size and modification time, as ``cp -p`` or ``rsync -t`` make, has another inode or ctime);
+    ``None`` for anything but a regular file."""
     try:
         if not path.is_file():
             return None
         stat = path.stat()
-        return str(path.resolve()), stat.st_mtime_ns, stat.st_size
+        return str(path.resolve()), stat.st_mtime_ns, stat.st_size, stat.st_ino, stat.st_ctime_ns
     except OSError:
         return None
 

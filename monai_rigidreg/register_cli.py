@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -81,7 +82,10 @@ def run(args: argparse.Namespace) -> int:
     # run did not take (it failed first) is dropped with its image
     from monai_rigidreg.prefetch import drop_prefetched, prefetch_volumes
 
-    prefetch_volumes([args.fixed, args.moving])
+    try:
+        prefetch_volumes([args.fixed, args.moving])
+    except RuntimeError as exc:  # no thread to read in (a process limit): load_volume reads them itself
+        logging.getLogger(__name__).debug("inputs not read ahead: %s", exc)
     try:
         return _run_pairs(args)
     finally:

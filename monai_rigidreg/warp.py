@@ -86,7 +86,9 @@ def warp_points(
     """:func:`warp_volume` at some voxels of ``fixed_grid`` only: ``[B, C, x, y, z]`` (``xyz`` layout on
     ``moving_grid``), ``[B, 4, 4]`` fixed -> moving matrices (LPS mm) and ``points`` ``[K, 3]``, fixed-grid voxel
     indices ``(i, j, k)`` (float, may be fractional) -> ``[B, C, K]``, the values :func:`warp_volume` has there
-    (the same sampling, ``grid_sample`` with ``align_corners=True``, on a ``[B, 1, 1, K, 3]`` grid of points).
+    (the same sampling, ``grid_sample`` with ``align_corners=True``, on a ``[B, 1, 1, K, 3]`` grid of points), on
+    grids of at least two voxels along each axis (``affine_grid`` puts a one-voxel axis at the normalized
+    coordinate 0, half a voxel off its centre; here it is the voxel's centre).
 
     The cost is that of ``K`` output voxels: the last level's Gauss-Newton steps sample only the voxels that can
     carry weight (:func:`~monai_rigidreg.networks.gauss_newton.gauss_newton_align`, ``candidates``).

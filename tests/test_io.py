@@ -316,6 +316,20 @@ def test_prefetched_reads_are_what_load_volume_reads_and_go_through_its_checks(t
     sitk.WriteImage(sitk.Cast(volume * -7.0, sitk.sitkInt16), str(int_path))
     os.utime(int_path, ns=(1_000_000_000, 1_000_000_000))  # a distinct modification time whatever the clock
     _same_image(load_volume(int_path), sitk.Cast(sitk.Cast(volume * -7.0, sitk.sitkInt16), sitk.sitkFloat32))
+    # a file replaced by one of the same size and modification time (cp -p, rsync -t) is read again too
+    plain, other = tmp_path / "plain.nii", tmp_path / "other.nii"  # uncompressed: the same size for the same shape
+    sitk.WriteImage(sitk.Cast(volume * 100.0, sitk.sitkInt16), str(plain))
+    sitk.WriteImage(sitk.Cast(volume * 3.0, sitk.sitkInt16), str(other))
+    assert plain.stat().st_size == other.stat().st_size
+    stamp = plain.stat().st_mtime_ns
+    os.utime(other, ns=(stamp, stamp))
+    prefetch_volumes([plain])
+    take = take_prefetched(plain)
+    take[0].result()
+    prefetch_volumes([plain])
+    os.replace(other, plain)
+    assert plain.stat().st_mtime_ns == stamp
+    _same_image(load_volume(plain), sitk.Cast(sitk.Cast(volume * 3.0, sitk.sitkInt16), sitk.sitkFloat32))
     # the same errors as an own read
     corrupt = tmp_path / "corrupt.nii.gz"
     corrupt.write_bytes(b"not an image at all")
@@ -346,6 +360,20 @@ def test_prefetched_reads_are_what_load_volume_reads_and_go_through_its_checks(t
     assert prefetch_volumes([int_path, float_path]) == 2
     assert drop_prefetched([int_path, float_path, None]) == 2
     assert take_prefetched(int_path) is None and take_prefetched(float_path) is None
+
+
+def test_a_truncated_float_nifti_is_reported_as_corrupt(tmp_path, volume):
+    """ITK reads a truncated float .nii.gz without complaint; the NaN check's read of the voxels fails, and that is
+    an InputError naming the file (was a bare EOFError)."""
+    import gzip
+
+    path = tmp_path / "cut.nii.gz"
+    sitk.WriteImage(volume, str(path))
+    raw = gzip.decompress(path.read_bytes())
+    path.write_bytes(gzip.compress(raw[: len(raw) * 2 // 3]))
+    with pytest.raises(InputError, match="unreadable or corrupt image file") as info:
+        load_volume(path)
+    assert "cut.nii.gz" in str(info.value)
 
 
 def test_register_command_starts_reading_both_inputs_before_importing_the_stack():

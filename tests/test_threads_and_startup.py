@@ -170,3 +170,14 @@ def test_version_and_package_import_do_not_import_torch():
     lines = _python(code).splitlines()
     assert lines[-2] == f"monai-rigidreg {monai_rigidreg.__version__} 0 False False"
     assert lines[-1] == "True True True"
+    # a submodule as an attribute after a plain import (a MONAI config's "$monai_rigidreg.geometry.PARAM_NAMES")
+    code = "import monai_rigidreg as m; print(m.geometry.PARAM_NAMES, m.geometry is __import__('sys').modules[" \
+           "'monai_rigidreg.geometry'])"
+    assert _python(code) == "('tx', 'ty', 'tz', 'rx', 'ry', 'rz') True"
+    assert len(monai_rigidreg.__all__) == len(set(monai_rigidreg.__all__))
+    with pytest.raises(AttributeError, match="no attribute 'no_such_thing'"):
+        monai_rigidreg.no_such_thing  # noqa: B018
+    # a mistyped command with --version still lists the commands
+    done = subprocess.run([sys.executable, "-m", "monai_rigidreg.cli", "regster", "--version"], capture_output=True,
+                          text=True)
+    assert done.returncode == 2 and "choose from 'simulate', 'train', 'register'" in done.stderr

@@ -348,7 +348,7 @@ class _Subset:
         if reach_mm < 0:
             raise ValueError(f"reach_mm must be >= 0, got {reach_mm}")
         n_ch, n_vox = fixed.shape[1], fixed[0, 0].numel()
-        self.index = candidates.reshape(-1).nonzero().squeeze(1)
+        self.index = candidates.to(fixed.device).reshape(-1).nonzero().squeeze(1)
         self.count = int(self.index.numel())
         points = torch.stack(voxel_indices(self.index, grid.size), 1).to(fixed.dtype)
         self.normalized = normalized_points(points, grid, fixed.dtype)  # sampled under every step's estimate
