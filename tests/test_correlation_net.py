@@ -57,6 +57,26 @@ def test_local_cost_volume_peaks_at_the_shift_with_its_sign():
     assert float(cv[0, idx, 3, 3, 3]) == pytest.approx(1.0, abs=1e-5)
 
 
+def test_local_cost_volume_is_the_cosine_with_each_shifted_cell():
+    # every entry against its definition, on a batch of two anisotropic maps: a transposed axis, a shift of the
+    # wrong sign or a border that is not zero fails it
+    g = torch.Generator().manual_seed(4)
+    fm, ff = torch.randn(2, 5, 4, 6, 3, generator=g), torch.randn(2, 5, 4, 6, 3, generator=g)
+    r, k = 1, 3
+    cv = local_cost_volume(fm, ff, r)
+    assert cv.shape == (2, k**3, 4, 6, 3)
+    un, uf = torch.nn.functional.normalize(fm, dim=1), torch.nn.functional.normalize(ff, dim=1)
+    want = torch.zeros_like(cv)
+    for i, (dx, dy, dz) in enumerate((a, b, c) for a in range(-r, r + 1) for b in range(-r, r + 1)
+                                     for c in range(-r, r + 1)):
+        for x in range(4):
+            for y in range(6):
+                for z in range(3):
+                    if 0 <= x + dx < 4 and 0 <= y + dy < 6 and 0 <= z + dz < 3:
+                        want[:, i, x, y, z] = (uf[:, :, x, y, z] * un[:, :, x + dx, y + dy, z + dz]).sum(1)
+    torch.testing.assert_close(cv, want, atol=1e-6, rtol=0)
+
+
 def test_parabola_shifts_find_a_subcell_peak_with_its_sign_per_axis():
     # costs of a concave quadratic peaked at (0.3, -1.2, 0.45) cells in a +-2 window, three cells, two cases
     r, k = 2, 5
