@@ -6,6 +6,9 @@ Prints the median seconds of:
   on one volume, with the encoder's kernel-3
   convolutions as ``OneDNNConv3d`` (oneDNN directly) and as plain ``nn.Conv3d`` (PyTorch's batch-1 path);
 * the network from three starts one by one and as one batch (``RigidRegistrar._runs_from``);
+* the learned network's local cost volume (``correlation_net.local_cost_volume``, 16 channels on 16^3 cells, radius 2)
+  as its einsum over unfolded windows and as one product and channel sum per shift (tried in 0.4.8, not kept: the
+  "old" column is the alternative here);
 * the Gauss-Newton Jacobian on the last level's grid (about 1M voxels, two feature channels): from index ramps
   (``fixed_jacobian``) and through the ``[6, 3, N]`` parameter flow it replaced;
 * the masked NCC maps of the global search's 27 rotation templates: one batched FFT (``masked_ncc_maps``) and one
@@ -134,6 +137,22 @@ def main() -> None:
         g_phys = [sum(float(inv_t[a, i]) * g_idx[i] for i in range(3) if inv_t[a, i] != 0.0) for a in range(3)]
         flow = parameter_flow(native, torch.float32)  # as before 0.4.6, for the grid of each case's last level
         return torch.stack([sum(g_phys[a] * flow[k, a] for a in range(3)) for k in range(6)], 1)
+
+    from monai_rigidreg.networks.correlation_net import local_cost_volume
+
+    cells = torch.randn(2, 1, 16, 16, 16, 16, generator=torch.Generator().manual_seed(5))
+
+    def cost_per_shift(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, r: int) -> torch.Tensor:
+        fm_n, ff_n = torch.nn.functional.normalize(feat_moving, dim=1), torch.nn.functional.normalize(feat_fixed, dim=1)
+        x, y, z = ff_n.shape[2:]
+        padded = torch.nn.functional.pad(fm_n, (r,) * 6)
+        k = 2 * r + 1
+        return torch.stack([(ff_n * padded[:, :, dx:dx + x, dy:dy + y, dz:dz + z]).sum(1)
+                            for dx in range(k) for dy in range(k) for dz in range(k)], dim=1)
+
+    rows.append(("local cost volume [1, 16, 16^3], radius 2: einsum (kept) | per-shift products (tried in 0.4.8)",
+                 median_time(lambda: local_cost_volume(cells[0], cells[1], 2), args.repeats),
+                 median_time(lambda: cost_per_shift(cells[0], cells[1], 2), args.repeats)))
 
     ramps = median_time(lambda: fixed_jacobian(feats, native), args.repeats)
     flows = median_time(through_flow, args.repeats)

@@ -36,8 +36,8 @@ CANDIDATE_SHARE_MAX = 0.8
 """The last level's steps go over the candidate voxels (:func:`support_reach`) only where these are at most this
 share of its grid: gathered at arbitrary voxels, a step costs about 1.1-1.2x per voxel what it costs over the whole
 grid (``python benchmarks/bench_network_paths.py``'s last-level rows, ``bench_network_paths_0.4.8_2026-12-03.txt``:
-with 69 % of a 102^3 grid 0.29 s instead of 0.37 s, with 97 % of a paper-protocol 64^3 grid 0.093 s instead of
-0.079 s)."""
+with 69 % of a 102^3 grid 0.31 s instead of 0.39 s, with 97 % of a paper-protocol 64^3 grid 0.107 s instead of
+0.091 s)."""
 
 
 def native_grid(fixed: sitk.Image, moving: sitk.Image, matrix: np.ndarray, min_spacing_mm: float = 1.0,

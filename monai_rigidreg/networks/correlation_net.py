@@ -58,9 +58,10 @@ def local_cost_volume(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, radiu
     k = 2 * r + 1
     x, y, z = ff.shape[2:]
     padded = F.pad(fm, (r, r, r, r, r, r))
-    # an einsum over unfolded windows (25 calls). Measured and not kept (0.4.8): one product and channel sum per
-    # shift on views (125 x 2 small operations) was 1.7x faster with libgomp's spinning threads but 1.5x slower with
-    # the package's passive wait policy, where every parallel operation wakes the worker threads
+    # an einsum over unfolded windows (25 calls). Tried and not kept (0.4.8): one product and channel sum per shift on
+    # views, 125 x 2 small operations, faster only with libgomp's spinning threads; under the package's passive wait
+    # policy, where every parallel operation wakes the worker threads, 0.024 s against the einsum's 0.015 s
+    # (benchmarks/bench_network_paths.py's cost-volume row)
     costs = []
     for dx in range(k):
         for dy in range(k):
