@@ -246,9 +246,7 @@ def main() -> None:
             estimates[subset] = gauss_newton_align(feats[:1], feats[1:], level, eye, **kwargs, **extra)[0].numpy()
 
         timed = median_time(lambda: steps(True), args.repeats), median_time(lambda: steps(False), args.repeats)
-        corners = np.array([[a, b, c, 1.0] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
-        corners[:, :3] *= np.asarray(level.size) - 1
-        corners = corners @ level.index_to_physical().T
+        corners = np.concatenate([level.corners(), np.ones((8, 1))], 1)
         apart = np.abs(corners @ (estimates[True] - estimates[False]).T)[:, :3].max()
         rows.append((f"last level's steps, {label}, {level.size[0]}^3, {100 * float(cand.float().mean()):.0f}% "
                      f"candidates (estimates {apart:.0e} mm apart): candidate voxels | whole grid", *timed))

@@ -206,8 +206,13 @@ def swap_inputs(moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, param
     """
     with torch.no_grad():
         p = torch.as_tensor(np.asarray(params, dtype=np.float64)[None], dtype=torch.float32)
-        fov_w = warp_volume_params(fov[None, None].float(), p, grid, mode="nearest")[0, 0]
-    return _masked_swap(moving_t, fixed_t, fov_w)
+        return _masked_swap(moving_t, fixed_t, _placed_fov(fov, p, grid))
+
+
+def _placed_fov(fov: torch.Tensor, params: torch.Tensor, grid: Grid) -> torch.Tensor:
+    """The field of view ``fov`` ``[x, y, z]`` (of the CBCT on ``grid``) where an estimate ``params`` ``[1, 6]``
+    (float32, mm/deg about the grid centre) places it on the CT: nearest-neighbour warp, ``[x, y, z]``."""
+    return warp_volume_params(fov[None, None].float(), params, grid, mode="nearest")[0, 0]
 
 
 def assess_estimate(
@@ -263,7 +268,7 @@ def assess_estimate(
         fixed_f = fixed_t[0].float()
         batch = torch.as_tensor(np.stack(candidates), dtype=torch.float32)
         moved0 = warp_volume_params(moving_t[None].float(), batch[:1], grid)[0, 0]
-        fov_w = warp_volume_params(fov[None, None].float(), batch[:1], grid, mode="nearest")[0, 0]
+        fov_w = _placed_fov(fov, batch[:1], grid)
         out = {"ncc_before": fov_ncc(moving_t[0], fixed_f, fov), "ncc_after": fov_ncc(moved0, fixed_f, fov_w)}
         out["tissue_on_air"] = tissue_on_air(fixed_f, moved0, erode(fov_w[None, None], (2, 2, 2))[0, 0], hu_range)
         # away from the field-of-view border: the CBCT's own edge there (data to zero) is no anatomy, and the

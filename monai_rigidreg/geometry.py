@@ -177,10 +177,15 @@ class Grid:
             return a
         raise ValueError(f"space must be 'RAS' or 'LPS', got {space!r}")
 
+    def corners(self) -> np.ndarray:
+        """The 8 corner voxel centres ``[8, 3]`` in LPS mm (index ``(0 | size - 1)`` per axis, the last axis
+        fastest). Any affine map's displacement over the grid's box is largest at one of them."""
+        idx = np.array(np.meshgrid(*[[0, s - 1] for s in self.size], indexing="ij")).reshape(3, -1).T
+        return transform_points(self.index_to_physical(), idx.astype(np.float64))
+
     def physical_extent(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned bounding box (min, max) in LPS mm of the voxel centres."""
-        corners = np.array(np.meshgrid(*[[0, s - 1] for s in self.size], indexing="ij")).reshape(3, -1).T
-        pts = transform_points(self.index_to_physical(), corners.astype(np.float64))
+        pts = self.corners()
         return pts.min(axis=0), pts.max(axis=0)
 
     def to_sitk(self, pixel_type: int = sitk.sitkFloat32) -> sitk.Image:

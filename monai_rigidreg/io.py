@@ -24,7 +24,7 @@ from monai_rigidreg.dicom_series import (  # re-exported: the DICOM reading live
 )
 from monai_rigidreg.errors import InputError, OutputExistsError, first_line
 from monai_rigidreg.geometry import Grid, matrix_to_sitk, sitk_to_matrix
-from monai_rigidreg.prefetch import check_nifti_finite, needs_nan_check, take_prefetched
+from monai_rigidreg.prefetch import check_nifti_finite, file_suffix, needs_nan_check, take_prefetched
 
 __all__ = [
     "VOLUME_SUFFIXES",
@@ -62,11 +62,6 @@ _INTERPOLATORS = {
     "bspline3": sitk.sitkBSpline3,
     "lanczos": sitk.sitkLanczosWindowedSinc,
 }
-
-
-def _suffix(path: Path) -> str:
-    name = path.name.lower()
-    return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
 
 
 def check_output_path(path: str | Path, overwrite: bool = False) -> Path:
@@ -183,8 +178,9 @@ def load_volume(
     if not p.exists():
         raise InputError("no such file or directory", p)
     nifti_check = None
-    prefetched = None if p.is_dir() else take_prefetched(p)  # a read the command started while it imported
-    if p.is_dir():
+    folder = p.is_dir()
+    prefetched = None if folder else take_prefetched(p)  # a read the command started while it imported
+    if folder:
         image = read_dicom_series(p, series_uid)
     elif prefetched is not None and prefetched[0].exception() is None:
         image, nifti_check = prefetched[0].result(), prefetched[1] if check_finite else None
@@ -215,8 +211,8 @@ def load_volume(
 def save_volume(image: sitk.Image, path: str | Path, overwrite: bool = False, compress: bool = True) -> Path:
     """Write a volume (format from the suffix, e.g. ``.nii.gz``, ``.mha``, ``.nrrd``); refuses to overwrite."""
     p = check_output_path(path, overwrite)
-    if _suffix(p) not in VOLUME_SUFFIXES:
-        raise InputError(f"unsupported volume suffix {_suffix(p)!r}; use one of {VOLUME_SUFFIXES}", p)
+    if file_suffix(p) not in VOLUME_SUFFIXES:
+        raise InputError(f"unsupported volume suffix {file_suffix(p)!r}; use one of {VOLUME_SUFFIXES}", p)
     sitk.WriteImage(image, str(p), compress)
     return p
 
@@ -263,8 +259,8 @@ def resample(
 def write_transform(transform: sitk.Transform, path: str | Path, overwrite: bool = False) -> Path:
     """Write an ITK transform file (``.tfm``/``.txt`` text or ``.h5`` HDF5) that ITK, 3D Slicer and elastix read."""
     p = check_output_path(path, overwrite)
-    if _suffix(p) not in TRANSFORM_SUFFIXES:
-        raise InputError(f"unsupported transform suffix {_suffix(p)!r}; use one of {TRANSFORM_SUFFIXES}", p)
+    if file_suffix(p) not in TRANSFORM_SUFFIXES:
+        raise InputError(f"unsupported transform suffix {file_suffix(p)!r}; use one of {TRANSFORM_SUFFIXES}", p)
     sitk.WriteTransform(transform, str(p))
     return p
 

@@ -26,7 +26,7 @@ import SimpleITK as sitk
 
 from monai_rigidreg.errors import InputError
 
-__all__ = ["check_nifti_finite", "drop_prefetched", "is_nifti", "needs_nan_check", "prefetch_volumes",
+__all__ = ["check_nifti_finite", "drop_prefetched", "file_suffix", "is_nifti", "needs_nan_check", "prefetch_volumes",
            "take_prefetched"]
 
 _FLOAT_PIXELS = {sitk.sitkFloat32, sitk.sitkFloat64, sitk.sitkVectorFloat32, sitk.sitkVectorFloat64,
@@ -36,10 +36,16 @@ _LOCK = threading.Lock()
 _PENDING: dict[tuple[str, int, int, int, int], tuple[Future, Future | None]] = {}
 
 
+def file_suffix(path: Path) -> str:
+    """The format suffix of ``path``, lower case: ``.nii.gz`` for a compressed NIfTI, else the last suffix (``.mha``,
+    ``.tfm``, ...). The one place file names are read for their format (:mod:`monai_rigidreg.io` too)."""
+    name = path.name.lower()
+    return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
+
+
 def is_nifti(path: Path) -> bool:
     """Whether ``path`` names a NIfTI file (``.nii`` or ``.nii.gz``, any case)."""
-    name = path.name.lower()
-    return name.endswith(".nii") or name.endswith(".nii.gz")
+    return file_suffix(path) in (".nii", ".nii.gz")
 
 
 def needs_nan_check(path: Path) -> bool:

@@ -45,12 +45,17 @@ def warp_volume(
     Returns:
         ``[B, C, *fixed spatial]`` tensor, dtype of ``moving``.
     """
+    _check_batch(moving, matrix)
+    sample_at = _sample_points(moving, matrix, fixed_grid, moving_grid, mode, padding_mode, array_order)
+    return F.grid_sample(moving.contiguous(), sample_at, mode=mode, padding_mode=padding_mode, align_corners=True)
+
+
+def _check_batch(moving: torch.Tensor, matrix: torch.Tensor) -> None:
+    """``moving`` a ``[B, C, D, H, W]`` batch and ``matrix`` one transform per case."""
     if moving.ndim != 5:
         raise ValueError(f"moving must be [B, C, D, H, W], got shape {tuple(moving.shape)}")
     if matrix.shape[0] != moving.shape[0]:
         raise ValueError(f"batch of matrix ({matrix.shape[0]}) and moving ({moving.shape[0]}) differ")
-    sample_at = _sample_points(moving, matrix, fixed_grid, moving_grid, mode, padding_mode, array_order)
-    return F.grid_sample(moving.contiguous(), sample_at, mode=mode, padding_mode=padding_mode, align_corners=True)
 
 
 def _check_moving(moving: torch.Tensor, moving_grid: Grid, mode: str, padding_mode: str, array_order: str) -> None:
@@ -93,10 +98,7 @@ def warp_points(
     The cost is that of ``K`` output voxels: the last level's Gauss-Newton steps sample only the voxels that can
     carry weight (:func:`~monai_rigidreg.networks.gauss_newton.gauss_newton_align`, ``candidates``).
     """
-    if moving.ndim != 5:
-        raise ValueError(f"moving must be [B, C, D, H, W], got shape {tuple(moving.shape)}")
-    if matrix.shape[0] != moving.shape[0]:
-        raise ValueError(f"batch of matrix ({matrix.shape[0]}) and moving ({moving.shape[0]}) differ")
+    _check_batch(moving, matrix)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must be [K, 3] voxel indices, got shape {tuple(points.shape)}")
     _check_moving(moving, moving_grid, mode, padding_mode, "xyz")

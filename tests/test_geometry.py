@@ -183,3 +183,19 @@ def test_worked_examples_3_5_6_7_of_the_conventions_page_exactly():
     np.testing.assert_allclose(normalized_theta(m, grid, grid, array_order="zyx")[0].numpy(),
                                [[1, 0, 0, 2 / 3], [0, 1, 0, 0], [0, 0, 1, 0]], atol=1e-12)
     np.testing.assert_allclose(parameter_errors([1, 2, 3, 179, 0, -1], [0, 2, 5, -179, 0, 1]), [1, 0, 2, 2, 0, 2])
+
+
+def test_grid_corners_are_the_corner_voxel_centres():
+    # oblique, anisotropic, off the origin: the first corner is the origin, the last index (size - 1) mapped by the
+    # direction and spacing, and the bounding box of physical_extent is theirs
+    direction = rotation_matrix(*np.deg2rad([10.0, -20.0, 35.0]))
+    grid = Grid((5, 7, 3), (1.5, 2.0, 3.0), (10.0, -4.0, 2.5), tuple(direction.ravel()))
+    corners = grid.corners()
+    assert corners.shape == (8, 3)
+    np.testing.assert_allclose(corners[0], grid.origin)
+    np.testing.assert_allclose(corners[-1], np.asarray(grid.origin) + direction @ (np.array([4.0, 6.0, 2.0])
+                                                                                 * [1.5, 2.0, 3.0]))
+    np.testing.assert_allclose(corners[1], np.asarray(grid.origin) + direction @ [0.0, 0.0, 6.0])  # last axis first
+    lo, hi = grid.physical_extent()
+    np.testing.assert_allclose(lo, corners.min(0))
+    np.testing.assert_allclose(hi, corners.max(0))

@@ -30,6 +30,15 @@ def volume():
     return sitk.Cast(img * 1000, sitk.sitkFloat32)
 
 
+def _with_voxel(image: sitk.Image, zyx: tuple[int, int, int], value: float) -> sitk.Image:
+    """A copy of ``image`` with the voxel at array index ``zyx`` set to ``value`` (e.g. NaN)."""
+    arr = sitk.GetArrayFromImage(image)
+    arr[zyx] = value
+    out = sitk.GetImageFromArray(arr)
+    out.CopyInformation(image)
+    return out
+
+
 @pytest.mark.parametrize("suffix", [".nii.gz", ".nii", ".mha", ".nrrd"])
 def test_save_load_roundtrip(tmp_path, volume, suffix):
     path = save_volume(volume, tmp_path / f"vol{suffix}")
@@ -92,10 +101,7 @@ def test_load_errors_are_clear(tmp_path, volume):
     sitk.WriteImage(sitk.JoinSeries([volume, volume]), str(four_d))
     with pytest.raises(InputError, match="expected a 3D volume, got a 4D image"):
         load_volume(four_d)
-    arr = sitk.GetArrayFromImage(volume)
-    arr[2, 3, 4] = np.nan
-    nan_img = sitk.GetImageFromArray(arr)
-    nan_img.CopyInformation(volume)
+    nan_img = _with_voxel(volume, (2, 3, 4), np.nan)
     nan_path = tmp_path / "nan.nii.gz"
     sitk.WriteImage(nan_img, str(nan_path))
     with pytest.raises(InputError, match="1 NaN or infinite voxel"):
@@ -336,12 +342,8 @@ def test_prefetched_reads_are_what_load_volume_reads_and_go_through_its_checks(t
     prefetch_volumes([corrupt])
     with pytest.raises(InputError, match="unreadable or corrupt image file"):
         load_volume(corrupt)
-    arr = sitk.GetArrayFromImage(volume)
-    arr[1, 2, 3] = np.inf
-    bad = sitk.GetImageFromArray(arr)
-    bad.CopyInformation(volume)
     bad_path = tmp_path / "inf.nii.gz"
-    sitk.WriteImage(bad, str(bad_path))
+    sitk.WriteImage(_with_voxel(volume, (1, 2, 3), np.inf), str(bad_path))
     prefetch_volumes([bad_path])
     with pytest.raises(InputError, match="1 NaN or infinite voxel"):
         load_volume(bad_path)

@@ -247,12 +247,8 @@ def gauss_newton_align(
             if subset.weight is not None:
                 w = w * subset.weight
             r = warped - subset.fixed  # [1, C, K]
-            wj = subset.jacobian * w.expand_as(r).flatten(1).unsqueeze(1)  # [1, 6, C*K]
-            h = (wj @ subset.jacobian.transpose(1, 2)).to(torch.float64)
-            g = (wj @ r.flatten(1).unsqueeze(-1)).to(torch.float64)
-            if basis is not None:
-                h, g = _with_bias_terms(h, g, wj, w, r, basis[:, subset.index], n_ch, subset.count)
-            d = _damped_step(h, g, damping)
+            d = _solve_step(subset.jacobian, w, r, None if basis is None else basis[:, subset.index], n_ch,
+                            subset.count, damping)
         else:
             d, w = _dense_step(stacked, total, grid, fixed, weight, jac_fixed, jacobian, robust_scale, basis, n_ch,
                                n_vox, damping)
@@ -285,9 +281,17 @@ def gauss_newton_align(
     return total, res, overlap
 
 
-def _damped_step(h: torch.Tensor, g: torch.Tensor, damping: float) -> torch.Tensor:
-    """The Levenberg-Marquardt step ``[B, 6]`` of the normal equations ``h`` ``[B, n, n]``, ``g`` ``[B, n, 1]``
-    (``n >= 6``: bias coefficients, if any, are solved for and dropped)."""
+def _solve_step(jf: torch.Tensor, w: torch.Tensor, r: torch.Tensor, basis: torch.Tensor | None, n_ch: int,
+                n_vox: int, damping: float) -> torch.Tensor:
+    """The Levenberg-Marquardt step ``[B, 6]`` from the Jacobian ``jf`` ``[B, 6, C*N]``, the voxel weights ``w``
+    ``[B, 1, ...]`` and residuals ``r`` ``[B, C, ...]`` of ``N`` voxels (the whole grid or the candidates), with the
+    bias terms of ``basis`` ``[k, N]`` solved for and dropped. Products in the feature dtype, the solve in
+    float64."""
+    wj = jf * w.expand_as(r).flatten(1).unsqueeze(1)  # [B, 6, C*N]
+    h = (wj @ jf.transpose(1, 2)).to(torch.float64)  # [B, 6, 6]
+    g = (wj @ r.flatten(1).unsqueeze(-1)).to(torch.float64)  # [B, 6, 1]
+    if basis is not None:
+        h, g = _with_bias_terms(h, g, wj, w, r, basis, n_ch, n_vox)
     diag = torch.diagonal(h, dim1=1, dim2=2)
     h = h + torch.diag_embed(damping * diag + 1e-9)
     return torch.linalg.solve(h, g).squeeze(-1)[:, :6]
@@ -313,12 +317,7 @@ def _dense_step(stacked: torch.Tensor, total: torch.Tensor, grid: Grid, fixed: t
     if robust_scale is not None:
         sq = (r.detach() ** 2).sum(1, keepdim=True)
         w = w * (robust_scale**2 / (robust_scale**2 + sq))
-    wj = jf * w.expand_as(r).flatten(1).unsqueeze(1)  # [B, 6, C*N]
-    h = (wj @ jf.transpose(1, 2)).to(torch.float64)  # [B, 6, 6]
-    g = (wj @ r.flatten(1).unsqueeze(-1)).to(torch.float64)  # [B, 6, 1]
-    if basis is not None:
-        h, g = _with_bias_terms(h, g, wj, w, r, basis, n_ch, n_vox)
-    return _damped_step(h, g, damping), w
+    return _solve_step(jf, w, r, basis, n_ch, n_vox, damping), w
 
 
 def voxel_indices(index: torch.Tensor, size: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -355,10 +354,8 @@ class _Subset:
         self.fixed = fixed.reshape(1, n_ch, n_vox)[:, :, self.index]
         self.jacobian = fixed_jacobian(fixed.detach(), grid, self.index, points).reshape(1, 6, n_ch * self.count)
         self.weight = None if weight is None else weight.reshape(1, 1, n_vox)[:, :, self.index]
-        corners = np.array([[a, b, c, 1.0] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
-        corners[:, :3] *= np.asarray(grid.size, dtype=np.float64) - 1
-        self._corners = torch.as_tensor(corners @ grid.index_to_physical().T, dtype=torch.float64,
-                                        device=init.device)  # [8, 4] LPS mm
+        corners = np.concatenate([grid.corners(), np.ones((8, 1))], 1)  # [8, 4] homogeneous LPS mm
+        self._corners = torch.as_tensor(corners, dtype=torch.float64, device=init.device)
         self._start = self._corners @ init[0].detach().to(torch.float64).T
         self._reach = float(reach_mm)
 
