@@ -45,6 +45,7 @@ __all__ = [
     "recenter_params",
     "params_to_matrix_torch",
     "matrix_to_params_torch",
+    "index_to_normalized",
     "normalized_theta",
     "voxel_matrix",
     "lps_to_ras_affine",
@@ -440,6 +441,13 @@ def voxel_matrix(matrix: Any, fixed: Grid, moving: Grid) -> Any:
         pm_t = torch.as_tensor(pm_inv, dtype=matrix.dtype, device=matrix.device)
         return pm_t @ matrix @ pf_t
     return pm_inv @ np.asarray(matrix, dtype=np.float64) @ pf
+
+
+def index_to_normalized(size: Sequence[int], array_order: str = "xyz") -> np.ndarray:
+    """4x4 map from a grid's ITK voxel index ``(i, j, k, 1)`` to torch's normalized sampling coordinates
+    (``grid_sample`` / ``affine_grid`` with ``align_corners=True``, the last tensor axis first), for tensors laid out
+    in ``array_order``: the inverse of the map :func:`normalized_theta` is built from."""
+    return np.linalg.inv(_norm_to_index(size, array_order))
 
 
 def normalized_theta(matrix: torch.Tensor, fixed: Grid, moving: Grid, array_order: str = "xyz") -> torch.Tensor:

@@ -14,7 +14,7 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from monai_rigidreg.geometry import Grid, normalized_theta, params_to_matrix_torch
+from monai_rigidreg.geometry import Grid, index_to_normalized, normalized_theta, params_to_matrix_torch
 
 __all__ = ["normalized_points", "warp_points", "warp_volume", "warp_volume_many", "warp_volume_params"]
 
@@ -108,9 +108,10 @@ def warp_points(
 
 def normalized_points(points: torch.Tensor, grid: Grid, dtype: torch.dtype = torch.float32) -> torch.Tensor:
     """Voxel indices ``[K, 3]`` ``(i, j, k)`` of ``grid`` -> ``grid_sample``'s normalized coordinates ``[K, 3]``
-    (``align_corners=True``; component ``g`` addresses index axis ``2 - g``, as ``affine_grid`` lays them out)."""
-    half = torch.as_tensor([max(n - 1, 1) / 2.0 for n in grid.size], dtype=dtype, device=points.device)
-    return (points.to(dtype) / half - 1.0).flip(1)
+    (``align_corners=True``; component ``g`` addresses index axis ``2 - g``, as ``affine_grid`` lays them out;
+    :func:`~monai_rigidreg.geometry.index_to_normalized`)."""
+    m = torch.as_tensor(index_to_normalized(grid.size, "xyz"), dtype=dtype, device=points.device)
+    return torch.addmm(m[:3, 3], points.to(dtype), m[:3, :3].T)
 
 
 def _sample_normalized(moving: torch.Tensor, matrix: torch.Tensor, normalized: torch.Tensor, fixed_grid: Grid,

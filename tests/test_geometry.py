@@ -199,3 +199,16 @@ def test_grid_corners_are_the_corner_voxel_centres():
     lo, hi = grid.physical_extent()
     np.testing.assert_allclose(lo, corners.min(0))
     np.testing.assert_allclose(hi, corners.max(0))
+
+
+def test_index_to_normalized_inverts_the_map_of_normalized_theta():
+    # the grid's first voxel is -1 and its last +1 along every axis, the tensor's last axis first (xyz layout: the
+    # first component addresses index axis k); a one-voxel axis's voxel is -1, as normalized_theta maps it
+    from monai_rigidreg.geometry import index_to_normalized
+
+    m = index_to_normalized((5, 9, 3), "xyz")
+    np.testing.assert_allclose(m @ [0, 0, 0, 1], [-1, -1, -1, 1])
+    np.testing.assert_allclose(m @ [4, 8, 2, 1], [1, 1, 1, 1])
+    np.testing.assert_allclose(m @ [2, 0, 1, 1], [0, -1, 0, 1])  # (k, j, i) order: k = 1 of 0..2 is the middle
+    np.testing.assert_allclose(index_to_normalized((5, 9, 1), "xyz") @ [0, 0, 0, 1], [-1, -1, -1, 1])
+    np.testing.assert_allclose(index_to_normalized((5, 9, 3), "zyx") @ [4, 0, 0, 1], [1, -1, -1, 1])
