@@ -17,7 +17,7 @@ import os
 import sys
 from typing import Any
 
-__version__ = "0.4.8"
+__version__ = "0.4.9"
 
 # Thread policy (before anything imports torch): PyTorch's OpenMP worker threads spin while they wait for work
 # (libgomp's default), so beside another CPU-bound process on a 2-core machine each spinning thread steals the

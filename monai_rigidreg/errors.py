@@ -4,12 +4,14 @@ that a SIGTERM becomes (so that the cleanup of an ``except BaseException`` / ``f
 from __future__ import annotations
 
 import contextlib
+import re
 import signal
 import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["RigidRegError", "InputError", "OutputExistsError", "Terminated", "sigterm_raises", "first_line"]
+__all__ = ["RigidRegError", "InputError", "OutputExistsError", "Terminated", "sigterm_raises", "first_line",
+           "read_error_reason"]
 
 
 class RigidRegError(Exception):
@@ -32,7 +34,8 @@ class InputError(RigidRegError, ValueError):
 class OutputExistsError(RigidRegError, FileExistsError):
     """An output would overwrite an existing file or directory and overwriting was not asked for."""
 
-    def __init__(self, path: str | Path, hint: str = "pass overwrite=True (--overwrite on the command line)") -> None:
+    def __init__(self, path: str | Path, hint: str = "--overwrite on the command line, overwrite=True from Python"
+                 ) -> None:
         self.path = Path(path)
         super().__init__(f"{self.path}: already exists; refusing to overwrite it ({hint})")
 
@@ -76,3 +79,13 @@ def first_line(exc: BaseException) -> str:
     lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
     # SimpleITK errors end with the useful sentence; keep it short
     return lines[-1] if lines else type(exc).__name__
+
+
+def read_error_reason(exc: BaseException, path: str | Path) -> str:
+    """:func:`first_line` of SimpleITK's error for a file it could not read, made true where ITK's is not: its
+    MetaImage reader ends a short read of an existing file with ``Reason: No such file or directory`` (the errno text
+    of an unrelated call), and its "no reader" error carries a ``sitk::ERROR:`` prefix."""
+    reason = first_line(exc)
+    if reason.startswith("Reason:") and Path(path).exists():
+        return "its voxel data could not be read: the file ends early or is damaged"
+    return re.sub(r"^sitk::ERROR: ", "", reason)

@@ -7,6 +7,7 @@ letting a bare SimpleITK/GDCM traceback through, and refuses to overwrite output
 from __future__ import annotations
 
 import logging
+import os
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -22,9 +23,16 @@ from monai_rigidreg.dicom_series import (  # re-exported: the DICOM reading live
     read_dicom_series,
     select_dicom_series,
 )
-from monai_rigidreg.errors import InputError, OutputExistsError, first_line
+from monai_rigidreg.errors import InputError, OutputExistsError, first_line, read_error_reason
 from monai_rigidreg.geometry import Grid, matrix_to_sitk, sitk_to_matrix
-from monai_rigidreg.prefetch import check_nifti_finite, file_suffix, needs_nan_check, take_prefetched
+from monai_rigidreg.prefetch import (
+    check_nifti_complete,
+    check_nifti_finite,
+    file_suffix,
+    is_nifti,
+    needs_nan_check,
+    take_prefetched,
+)
 
 __all__ = [
     "VOLUME_SUFFIXES",
@@ -83,7 +91,8 @@ def check_output_dir(path: str | Path, overwrite: bool = False, allow_existing: 
 
     Raises:
         OutputExistsError: ``path`` is a file, or a non-empty folder and neither flag is set.
-        InputError: a parent of ``path`` is a file, or the name is too long for the file system.
+        InputError: a parent of ``path`` is a file, the name is too long for the file system, the folder above it
+            that exists is not writable, or ``path`` is an existing folder that is not writable.
     """
     p = Path(path)
     for parent in p.parents:
@@ -98,6 +107,14 @@ def check_output_dir(path: str | Path, overwrite: bool = False, allow_existing: 
                          "e.g. --output-dir reg_out", p)
     if p.is_dir() and any(p.iterdir()) and not (overwrite or allow_existing):
         raise OutputExistsError(p)
+    # the folder is written aside, next to it, and renamed into place (monai_rigidreg.staging): its parent (or the
+    # nearest folder above that exists) must take new entries, and an existing folder must be writable, found here
+    # rather than after the work (access(2) also sees read-only mounts and immutable folders, even for root)
+    above = next((d for d in p.absolute().parents if d.exists()), None)
+    if above is not None and not os.access(above, os.W_OK | os.X_OK):
+        raise InputError(f"cannot create the output folder: {above} is not writable", p)
+    if p.is_dir() and not os.access(p, os.W_OK | os.X_OK):
+        raise InputError("the output folder is not writable", p)
     return p
 
 
@@ -177,27 +194,35 @@ def load_volume(
     p = Path(path)
     if not p.exists():
         raise InputError("no such file or directory", p)
-    nifti_check = None
+    nifti_check = complete_check = None
     folder = p.is_dir()
     prefetched = None if folder else take_prefetched(p)  # a read the command started while it imported
     if folder:
         image = read_dicom_series(p, series_uid)
     elif prefetched is not None and prefetched[0].exception() is None:
-        image, nifti_check = prefetched[0].result(), prefetched[1] if check_finite else None
+        image, nifti_check, complete_check = prefetched
+        image = image.result()
+        nifti_check = nifti_check if check_finite else None
     else:
+        # the second reads (nibabel's NaN check, the NIfTI completeness check) run while SimpleITK reads: all
+        # decompress without holding the GIL (benchmarks/bench_inference_speed.py: a 256^3 float32 CT in 0.20 s
+        # instead of 0.31 s on 2 cores)
+        pool = ThreadPoolExecutor(max_workers=2)
         if check_finite and needs_nan_check(p):
-            # the second read (nibabel) runs while SimpleITK reads: both decompress without holding the GIL
-            # (benchmarks/bench_inference_speed.py: a 256^3 float32 CT in 0.20 s instead of 0.31 s on 2 cores)
-            pool = ThreadPoolExecutor(max_workers=1)
             nifti_check = pool.submit(check_nifti_finite, p)
-            pool.shutdown(wait=False)
+        if is_nifti(p):
+            complete_check = pool.submit(check_nifti_complete, p)
+        pool.shutdown(wait=False)
         try:
             image = sitk.ReadImage(str(p))
         except RuntimeError as exc:
-            raise InputError(f"unreadable or corrupt image file ({first_line(exc)})", p) from exc
+            raise InputError(f"unreadable or corrupt image file ({read_error_reason(exc, p)})", p) from exc
         finally:
-            if nifti_check is not None:
-                nifti_check.exception()  # wait for it either way: no stray reader left behind
+            for check in (nifti_check, complete_check):
+                if check is not None:
+                    check.exception()  # wait for it either way: no stray reader left behind
+    if complete_check is not None:
+        complete_check.result()  # a truncated or corrupt NIfTI file, which ITK reads without an error
     check_volume(image, p, check_finite=False)
     if nifti_check is not None:
         nifti_check.result()  # raises the NaN error found by the second read
@@ -357,6 +382,15 @@ def grids_overlap(a: Grid, b: Grid, min_fraction: float = 0.05) -> bool:
     inter = np.clip(np.minimum(amax, bmax) - np.maximum(amin, bmin), 0, None)
     vol = lambda lo, hi: float(np.prod(np.maximum(hi - lo, 1e-6)))  # noqa: E731
     return float(np.prod(inter)) >= min_fraction * min(vol(amin, amax), vol(bmin, bmax))
+
+
+def grid_within(a: Grid, b: Grid, max_share: float = 0.5) -> bool:
+    """Whether the physical bounding box of ``a`` lies inside that of ``b`` and covers at most ``max_share`` of its
+    volume: a planning CT (``a``, the fixed image) that does so is more likely a CBCT given in its place."""
+    amin, amax = a.physical_extent()
+    bmin, bmax = b.physical_extent()
+    inside = bool(np.all(amin >= bmin) and np.all(amax <= bmax))
+    return inside and float(np.prod(amax - amin)) <= max_share * float(np.prod(bmax - bmin))
 
 
 def as_image(image_or_path: sitk.Image | str | Path, name: str = "image") -> sitk.Image:

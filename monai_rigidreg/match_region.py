@@ -42,22 +42,28 @@ def parse_roi(roi: RoiLike) -> tuple[float, float, float, float, float, float] |
     """A box (six numbers, or a string ``"x0,y0,z0,x1,y1,z1"``, LPS mm) or a mask (image or path), checked.
 
     Raises:
-        InputError: not six numbers, an empty box, or a mask file that cannot be read.
+        InputError: not six numbers, an empty box, a mask file that cannot be read, a mask that is not a 3D scalar
+            image or has no non-zero voxel.
     """
-    if roi is None or isinstance(roi, sitk.Image):
+    if roi is None:
         return roi
+    if isinstance(roi, sitk.Image):
+        return _check_mask(roi)
     if isinstance(roi, (str, Path)):
         text = str(roi)
         if Path(text).exists():
+            from monai_rigidreg.io import load_volume  # the volumes' reader and checks (truncated NIfTI included)
+
             try:
-                return sitk.ReadImage(text)
-            except RuntimeError as exc:
-                raise InputError(f"cannot read the ROI mask: {str(exc).splitlines()[0]}", text) from exc
+                mask = load_volume(text, pixel_type=None, check_finite=False)
+            except InputError as exc:
+                raise InputError(f"the ROI mask: {str(exc).removeprefix(f'{exc.path}: ')}", text) from exc
+            return _check_mask(mask, text)
         try:
             roi = [float(v) for v in text.replace(";", ",").split(",")]
         except ValueError as exc:
-            raise InputError(f"--roi must be a mask file or six numbers x0,y0,z0,x1,y1,z1 (CT LPS mm), got {text!r}"
-                             ) from exc
+            raise InputError(f"--roi must be a mask file or six numbers x0,y0,z0,x1,y1,z1 (CT LPS mm), got {text!r}: "
+                             "no such file, and not six numbers") from exc
     values = [float(v) for v in roi]
     if len(values) != 6 or not all(np.isfinite(values)):
         raise InputError(f"an ROI box needs six finite numbers x0,y0,z0,x1,y1,z1 (CT LPS mm), got {values}")
@@ -66,6 +72,20 @@ def parse_roi(roi: RoiLike) -> tuple[float, float, float, float, float, float] |
     if np.any(hi - lo <= 0):
         raise InputError(f"the ROI box {values} is empty along an axis")
     return (*[float(v) for v in lo], *[float(v) for v in hi])
+
+
+def _check_mask(mask: sitk.Image, path: str | None = None) -> sitk.Image:
+    """An ROI mask as :func:`parse_roi` takes it: a 3D scalar image with at least one non-zero voxel.
+
+    Raises:
+        InputError: another dimension, vector voxels, or no voxel inside.
+    """
+    if mask.GetDimension() != 3 or mask.GetNumberOfComponentsPerPixel() != 1:
+        raise InputError(f"the ROI mask must be a 3D scalar image, got a {mask.GetDimension()}D image of size "
+                         f"{mask.GetSize()} with {mask.GetNumberOfComponentsPerPixel()} component(s) per voxel", path)
+    if not np.any(sitk.GetArrayViewFromImage(mask)):
+        raise InputError("the ROI mask is empty (no non-zero voxel)", path)
+    return mask
 
 
 def _box_mask(fixed: sitk.Image, box: Sequence[float]) -> np.ndarray:

@@ -12,6 +12,7 @@ import contextlib
 import json
 import logging
 import sys
+import threading
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -197,11 +198,14 @@ def register_files(
     provenance = registration_provenance(fixed, moving, fixed_series_uid, moving_series_uid,
                                          bundle=getattr(registrar, "source", {}), device=str(registrar.device))
     position, position_source, position_problem = _patient_position(provenance["inputs"]["fixed"], patient_position)
-    fixed_img = load_volume(fixed, series_uid=fixed_series_uid)
-    moving_img = load_volume(moving, series_uid=moving_series_uid)
+    with _logged_warnings("monai_rigidreg") as load_warnings:  # e.g. a DICOM series resampled over a slice gap
+        fixed_img = load_volume(fixed, series_uid=fixed_series_uid)
+        moving_img = load_volume(moving, series_uid=moving_series_uid)
     result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps, fine_stage=fine_stage,
                        global_init=global_init, roi=roi, match=match, keep_couch=keep_couch)
     result.provenance = provenance
+    if load_warnings:  # in the audit trail too, before the registration's own
+        result.details["warnings"] = load_warnings + result.details.get("warnings", [])
     if reg_warning:
         logger.warning("%s", reg_warning)
         result.details.setdefault("warnings", []).append(reg_warning)
@@ -218,9 +222,37 @@ def register_files(
     paths = write_outputs(result, fixed_img, moving_img, output_dir, overwrite=overwrite, qc=qc,
                           names=(Path(fixed).name, Path(moving).name), transform_format=transform_format,
                           dicom_references=refs)
+    if refs is None and reg == "auto" and not reg_warning:
+        logger.info("%s", NO_REG_FOR_FILES)
     logger.info("registered %s to %s: %s (confidence %.2f)", moving, fixed,
                 ", ".join(f"{n}={v:.2f}" for n, v in zip(PARAM_NAMES, result.params)), result.confidence)
     return paths
+
+
+NO_REG_FOR_FILES = ("no DICOM Spatial Registration (registration.dcm) written: it needs both inputs as DICOM series "
+                    "(NIfTI and other files carry no UIDs to refer to); build one with "
+                    "monai_rigidreg.dicom_reg.write_spatial_registration and user-given UIDs")
+
+
+@contextlib.contextmanager
+def _logged_warnings(name: str) -> Iterator[list[str]]:
+    """The messages of the warnings (and worse) logged under the logger ``name`` by this thread inside the block,
+    for ``result.json``'s ``details.warnings``; they are logged as usual too."""
+    found: list[str] = []
+    thread = threading.get_ident()
+
+    class _Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            if record.thread == thread:
+                found.append(record.getMessage())
+
+    handler = _Collect(logging.WARNING)
+    log = logging.getLogger(name)
+    log.addHandler(handler)
+    try:
+        yield found
+    finally:
+        log.removeHandler(handler)
 
 
 def dicom_references(fixed: str | Path, moving: str | Path, fixed_series_uid: str | None = None,
@@ -242,11 +274,8 @@ def dicom_references(fixed: str | Path, moving: str | Path, fixed_series_uid: st
         return None, ""
     why = ""
     if not (Path(fixed).is_dir() and Path(moving).is_dir()):
-        why = ("no DICOM Spatial Registration (registration.dcm) written: it needs both inputs as DICOM series "
-               "(NIfTI and other files carry no UIDs to refer to); build one with "
-               "monai_rigidreg.dicom_reg.write_spatial_registration and user-given UIDs")
-        if reg == "auto":  # the ordinary case for file inputs: said once in the log, not a warning
-            logger.info("%s", why)
+        why = NO_REG_FOR_FILES
+        if reg == "auto":  # the ordinary case for file inputs: said in the log once the outputs are written
             return None, ""
     else:
         try:

@@ -15,6 +15,7 @@ Frames and values are untouched: the image is what ``SimpleITK.ReadImage`` retur
 
 from __future__ import annotations
 
+import struct
 import threading
 import zlib
 from collections.abc import Iterable
@@ -26,14 +27,16 @@ import SimpleITK as sitk
 
 from monai_rigidreg.errors import InputError
 
-__all__ = ["check_nifti_finite", "drop_prefetched", "file_suffix", "is_nifti", "needs_nan_check", "prefetch_volumes",
-           "take_prefetched"]
+__all__ = ["check_nifti_complete", "check_nifti_finite", "drop_prefetched", "file_suffix", "is_nifti",
+           "needs_nan_check", "prefetch_volumes", "take_prefetched"]
 
 _FLOAT_PIXELS = {sitk.sitkFloat32, sitk.sitkFloat64, sitk.sitkVectorFloat32, sitk.sitkVectorFloat64,
                  sitk.sitkComplexFloat32, sitk.sitkComplexFloat64}
 
 _LOCK = threading.Lock()
-_PENDING: dict[tuple[str, int, int, int, int], tuple[Future, Future | None]] = {}
+_PENDING: dict[tuple[str, int, int, int, int], tuple[Future, Future | None, Future | None]] = {}
+_CHUNK = 1 << 20
+_GZIP_MAGIC = b"\x1f\x8b"
 
 
 def file_suffix(path: Path) -> str:
@@ -90,6 +93,99 @@ def check_nifti_finite(path: Path) -> None:
         raise InputError(f"volume has {bad} NaN or infinite voxel(s)", path)
 
 
+def _nifti_voxel_bytes(header: bytes) -> tuple[int, int] | None:
+    """``(offset of the voxel data, bytes of voxel data)`` a single-file NIfTI-1 or NIfTI-2 header declares (either
+    byte order); ``None`` where the header is not one (ITK refuses or reads it on its own terms)."""
+    for order in "<>":
+        if len(header) >= 348 and struct.unpack(order + "i", header[:4])[0] == 348:
+            if header[344:348] != b"n+1\0":
+                return None
+            dim = struct.unpack(order + "8h", header[40:56])
+            bitpix = struct.unpack(order + "h", header[72:74])[0]
+            offset = int(struct.unpack(order + "f", header[108:112])[0])
+            break
+        if len(header) >= 540 and struct.unpack(order + "i", header[:4])[0] == 540:
+            if header[4:8] != b"n+2\0":
+                return None
+            bitpix = struct.unpack(order + "h", header[14:16])[0]
+            dim = struct.unpack(order + "8q", header[16:80])
+            offset = struct.unpack(order + "q", header[168:176])[0]
+            break
+    else:
+        return None
+    ndim = dim[0]
+    if not 1 <= ndim <= 7 or bitpix <= 0 or any(d <= 0 for d in dim[1: ndim + 1]):
+        return None
+    count = 1
+    for d in dim[1: ndim + 1]:
+        count *= int(d)
+    return offset, (count * bitpix + 7) // 8
+
+
+def _gunzip_length(path: Path, keep: int) -> tuple[int, bytes]:
+    """Decompress a gzip file (every member) without keeping it: ``(decompressed length, its first ``keep``
+    bytes)``. zlib checks each member's CRC-32 and length and the deflate stream itself; data after the last member
+    that is not another member (e.g. zero padding) is ignored, as gzip does.
+
+    Raises:
+        InputError: the compressed data is corrupt or ends before a member does (a truncated file).
+    """
+    total, head = 0, b""
+    inflater = zlib.decompressobj(zlib.MAX_WBITS | 16)
+    with open(path, "rb") as f:
+        pending = b""
+        while True:
+            if not pending:
+                pending = f.read(_CHUNK)
+                if not pending:
+                    break
+            try:
+                out = inflater.decompress(pending)
+            except zlib.error as exc:
+                raise InputError(f"unreadable or corrupt image file (its compressed data: {exc})", path) from exc
+            pending = b""
+            total += len(out)
+            if len(head) < keep:
+                head += out[: keep - len(head)]
+            if inflater.eof:  # a member ended: another one may follow
+                rest = inflater.unused_data
+                if len(rest) < len(_GZIP_MAGIC):
+                    rest += f.read(_CHUNK)
+                if not rest.startswith(_GZIP_MAGIC):
+                    return total, head  # the end, or padding after the last member
+                inflater = zlib.decompressobj(zlib.MAX_WBITS | 16)
+                pending = rest
+    if not inflater.eof:
+        raise InputError("unreadable or corrupt image file (its compressed data ends early: the file is truncated)",
+                         path)
+    return total, head
+
+
+def check_nifti_complete(path: Path) -> None:
+    """ITK's NIfTI reader fills the voxels a truncated file lacks with zeros and reports nothing (SimpleITK 2.5: a
+    ``.nii`` or ``.nii.gz`` cut to 75 % reads as a whole volume, and a registration on it ends with a confident,
+    wrong result): check that the file holds the whole voxel block its header declares and, compressed, that the gzip
+    stream is whole and its checksums hold. Reads the file once more (0.1 s for an 18 MB CT on one core; run beside
+    SimpleITK's read, which decompresses without holding the GIL too).
+
+    Raises:
+        InputError: truncated or corrupt; the message says which.
+    """
+    if file_suffix(path) == ".nii.gz":
+        total, header = _gunzip_length(path, 544)
+    else:
+        with open(path, "rb") as f:
+            header = f.read(544)
+        total = path.stat().st_size
+    declared = _nifti_voxel_bytes(header)
+    if declared is None:
+        return
+    offset, needed = declared
+    if total < offset + needed:
+        raise InputError(f"unreadable or corrupt image file (truncated: {max(total - offset, 0)} bytes of voxel data "
+                         f"where its header declares {needed})", path)
+
+
 def _key(path: Path) -> tuple[str, int, int, int, int] | None:
     """The file's resolved path, modification time (ns), size, inode and status-change time (ns: a file replaced by
     one with the same size and modification time, as ``cp -p`` or ``rsync -t`` make, has another inode or ctime);
@@ -104,9 +200,10 @@ def _key(path: Path) -> tuple[str, int, int, int, int] | None:
 
 
 def prefetch_volumes(paths: Iterable[str | Path | None]) -> int:
-    """Start reading each regular file of ``paths`` in a worker thread (``SimpleITK.ReadImage``, and where
-    :func:`needs_nan_check` says so :func:`check_nifti_finite` beside it); folders (DICOM series), missing paths and
-    ``None`` are skipped, as is a file whose read is already pending. Returns the number of reads started."""
+    """Start reading each regular file of ``paths`` in a worker thread (``SimpleITK.ReadImage``, and beside it
+    :func:`check_nifti_finite` where :func:`needs_nan_check` says so and :func:`check_nifti_complete` for a NIfTI
+    file); folders (DICOM series), missing paths and ``None`` are skipped, as is a file whose read is already
+    pending. Returns the number of reads started."""
     started = 0
     for path in paths:
         if path is None:
@@ -118,19 +215,20 @@ def prefetch_volumes(paths: Iterable[str | Path | None]) -> int:
         with _LOCK:
             if key in _PENDING:
                 continue
-            pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="monai-rigidreg-read")
+            pool = ThreadPoolExecutor(max_workers=3, thread_name_prefix="monai-rigidreg-read")
             image = pool.submit(sitk.ReadImage, str(p))
             nifti = pool.submit(check_nifti_finite, p) if needs_nan_check(p) else None
+            complete = pool.submit(check_nifti_complete, p) if is_nifti(p) else None
             pool.shutdown(wait=False)
-            _PENDING[key] = (image, nifti)
+            _PENDING[key] = (image, nifti, complete)
         started += 1
     return started
 
 
-def take_prefetched(path: str | Path) -> tuple[Future, Future | None] | None:
+def take_prefetched(path: str | Path) -> tuple[Future, Future | None, Future | None] | None:
     """The pending read of ``path`` started by :func:`prefetch_volumes` (removed from the pending reads: a path is
-    taken once), as ``(image future, NIfTI check future or None)``; ``None`` where none was started or the file
-    changed since it was."""
+    taken once), as ``(image future, NIfTI NaN check future or None, NIfTI completeness check future or None)``;
+    ``None`` where none was started or the file changed since it was."""
     p = Path(path)
     key = _key(p)
     if key is None:

@@ -55,7 +55,7 @@ from monai_rigidreg.geometry import (
 )
 from monai_rigidreg.global_init import SEARCH_AGREE_MM, fov_similarity, global_search, matrix_distance_mm
 from monai_rigidreg.grid_sampling import normalize_hu, sitk_on_grid
-from monai_rigidreg.io import as_image, check_distinct_inputs, grids_overlap, resample
+from monai_rigidreg.io import as_image, check_distinct_inputs, grid_within, grids_overlap, resample
 from monai_rigidreg.json_safe import json_safe
 from monai_rigidreg.match_region import RoiLike, match_weight, parse_roi, weight_on_grid
 from monai_rigidreg.network_grid import NetworkGridSpec
@@ -84,7 +84,8 @@ class RegistrationResult:
             waited for it afterwards. The confidence check's swapped-input estimate runs in a worker thread beside
             the last level: ``swap_estimate`` is its own duration (overlapping ``native_level``; ``confidence``
             includes only the wait for it).
-        confidence: score in [0, 1] (see :func:`confidence_score`); ``flagged`` when below the threshold.
+        confidence: score in [0, 1] (see :func:`confidence_score`); ``flagged`` when below the threshold. 0 where
+            an input's intensities are not HU (``details.signals.not_hu`` names it): the signals are calibrated on HU.
         flagged: likely failure: check the QC figure.
         details: network-only parameters, refinement change, similarity before/after, swap consistency, and
             ``warnings`` (a list of sentences, e.g. an input whose intensities are not HU) where there are any.
@@ -636,14 +637,21 @@ class RigidRegistrar:
         timings: dict[str, float] = {}
         fixed_img = as_image(fixed, "fixed")
         moving_img = as_image(moving, "moving")
-        warnings = [w for img, name in ((fixed_img, "fixed (CT)"), (moving_img, "moving (CBCT)"))
-                    for w in check_intensities(img, name, self.hu_range)]
+        not_hu = {name: check_intensities(img, name, self.hu_range)
+                  for img, name in ((fixed_img, "fixed (CT)"), (moving_img, "moving (CBCT)"))}
+        warnings = [w for found in not_hu.values() for w in found]
         timings["load"] = time.perf_counter() - t_start
         if not grids_overlap(Grid.from_sitk(fixed_img), Grid.from_sitk(moving_img)):
             raise InputError(
                 "the CT (fixed) and CBCT (moving) do not overlap in physical space: check that both are in the "
                 "same patient coordinate system (origins and directions)"
             )
+        if grid_within(Grid.from_sitk(fixed_img), Grid.from_sitk(moving_img)):
+            msg = ("the fixed image lies inside the moving one and covers less than half of it, as a CBCT would the "
+                   "planning CT: check that fixed (--fixed) is the CT and moving (--moving) the CBCT (swapped, the "
+                   "transform and the couch shifts come out inverted)")
+            logger.warning("%s", msg)
+            warnings.append(msg)
         roi = parse_roi(roi)  # once: a mask file is read here
         weight_img = match_weight(fixed_img, roi, match)
         stage = getattr(self.network, "fine_stage", None)
@@ -774,6 +782,13 @@ class RigidRegistrar:
                 net_params = params.copy()
             timings["confidence"] = time.perf_counter() - t
             confidence = signals.pop("confidence")
+            not_hu_inputs = [name for name, found in not_hu.items() if found]
+            if not_hu_inputs:
+                # the signals are calibrated on HU images: on others they can pass a gross failure (a uint8 export of
+                # a bench_speed CBCT registered about 24 mm off scored 0.58), so such a result is flagged whatever
+                # they say
+                signals["not_hu"] = not_hu_inputs
+                confidence = 0.0
             flagged = confidence < CONFIDENCE_THRESHOLD
             details["signals"] = signals
             if flagged:

@@ -17,7 +17,7 @@ from collections.abc import Collection, Iterator
 from pathlib import Path
 from typing import Any
 
-from monai_rigidreg.errors import OutputExistsError, sigterm_raises
+from monai_rigidreg.errors import InputError, OutputExistsError, sigterm_raises
 from monai_rigidreg.io import check_output_dir, make_dirs, remove_made_dirs
 
 __all__ = ["staged_output_dir", "check_replaceable"]
@@ -134,8 +134,10 @@ def _move_into_place(tmp: Path, out: Path, overwrite: bool) -> None:
             try:
                 out.rmdir()  # an empty folder (given, or made by hand); refused if it was filled meanwhile
             except OSError as exc:
-                raise OutputExistsError(out, "another process wrote into it while this one ran; its files are "
-                                        "kept") from exc
+                if exc.errno in (errno.ENOTEMPTY, errno.EEXIST):
+                    raise OutputExistsError(out, "another process wrote into it while this one ran; its files are "
+                                            "kept") from exc
+                raise InputError(f"cannot replace the empty output folder ({exc.strerror})", out) from exc
             was_empty = True
     try:
         _rename_noreplace(tmp, out)

@@ -172,3 +172,20 @@ def test_patient_position_option_header_and_unsupported_values(pair, dicom_pair,
                  "--no-qc"]) == 0
     result = json.loads((out / "result.json").read_text())
     assert "unsupported patient position" in result["couch_shift"]["unavailable"]
+
+
+def test_a_dicom_slice_gap_is_recorded_in_result_json(pair, dicom_pair, tmp_path, caplog):
+    """A CBCT series with a missing slice is resampled at its true slice positions (monai_rigidreg.dicom_series);
+    the warning that says so is in the audit trail (result.json details.warnings), not only on the console."""
+    ct, cbct = dicom_pair
+    gappy = tmp_path / "cbct_gap"
+    shutil.copytree(cbct, gappy)
+    files = sorted(gappy.iterdir(), key=lambda f: float(pydicom.dcmread(f, stop_before_pixels=True)
+                                                        .ImagePositionPatient[2]))
+    files[len(files) // 2].unlink()
+    out = tmp_path / "out"
+    with caplog.at_level("WARNING"):
+        assert main(["register", "--fixed", str(ct), "--moving", str(gappy), "--output-dir", str(out), "--no-qc"]) == 0
+    warnings = json.loads((out / "result.json").read_text())["details"]["warnings"]
+    assert [w for w in warnings if "unevenly spaced" in w and "resampled from" in w]
+    assert "unevenly spaced" in caplog.text  # and still logged

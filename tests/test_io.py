@@ -407,3 +407,64 @@ def test_a_register_run_that_fails_first_leaves_no_pending_read(tmp_path, volume
     assert main(["register", "--fixed", str(fixed), "--moving", str(moving), "--output-dir", str(taken), "-q"]) == 2
     assert not [k for k in _PENDING if k[0] in (str(fixed.resolve()), str(moving.resolve()))]
     assert (taken / "keep.txt").read_text() == "not ours"
+
+
+def test_nifti_completeness_check(tmp_path, volume):
+    """check_nifti_complete: the voxel bytes a NIfTI-1 or NIfTI-2 header declares must all be there and a gzip
+    stream must be whole with its checksums right; several gzip members and zero padding after the last one are
+    fine (gzip reads them)."""
+    import gzip
+
+    import nibabel as nib
+
+    from monai_rigidreg.prefetch import check_nifti_complete
+
+    whole = tmp_path / "whole.nii.gz"
+    sitk.WriteImage(sitk.Cast(volume * 100.0, sitk.sitkInt16), str(whole))
+    check_nifti_complete(whole)
+    raw = gzip.decompress(whole.read_bytes())
+    members = tmp_path / "members.nii.gz"
+    members.write_bytes(gzip.compress(raw[:500]) + gzip.compress(raw[500:]))
+    check_nifti_complete(members)
+    padded = tmp_path / "padded.nii.gz"
+    padded.write_bytes(whole.read_bytes() + bytes(64))
+    check_nifti_complete(padded)
+    short = tmp_path / "short.nii.gz"  # a whole gzip stream of too few voxel bytes (written short, not cut)
+    short.write_bytes(gzip.compress(raw[:-10]))
+    with pytest.raises(InputError, match="truncated: .* bytes of voxel data where its header declares"):
+        check_nifti_complete(short)
+    cut = tmp_path / "cut.nii.gz"
+    cut.write_bytes(whole.read_bytes()[:-20])
+    with pytest.raises(InputError, match="compressed data ends early"):
+        check_nifti_complete(cut)
+    damaged = bytearray(whole.read_bytes())
+    damaged[-6] ^= 0xFF  # the stored length: the stream decodes, its trailer disagrees
+    (tmp_path / "damaged.nii.gz").write_bytes(bytes(damaged))
+    with pytest.raises(InputError, match="its compressed data: Error -3"):
+        check_nifti_complete(tmp_path / "damaged.nii.gz")
+    # uncompressed NIfTI-1 and NIfTI-2 (nibabel writes both): the file size against the header
+    data = np.arange(4 * 5 * 6, dtype=np.int16).reshape(4, 5, 6)
+    for cls, name in ((nib.Nifti1Image, "v1.nii"), (nib.Nifti2Image, "v2.nii")):
+        path = tmp_path / name
+        nib.save(cls(data, np.eye(4)), str(path))
+        check_nifti_complete(path)
+        path.write_bytes(path.read_bytes()[:-1])
+        with pytest.raises(InputError, match="truncated: 239 bytes of voxel data where its header declares 240"):
+            check_nifti_complete(path)
+    # not a NIfTI header (ITK decides about it): no opinion
+    other = tmp_path / "other.nii"
+    other.write_bytes(b"not a header" * 100)
+    check_nifti_complete(other)
+
+
+def test_grid_within_is_containment_of_a_smaller_box():
+    from monai_rigidreg.geometry import Grid
+    from monai_rigidreg.io import grid_within
+
+    ct = Grid((256, 256, 141), (1.95, 1.95, 2.0), (-249.0, -249.0, -140.0))
+    cbct = Grid.centered((128, 128, 128), (1.5, 1.5, 1.5), (10.0, -20.0, 5.0))
+    assert grid_within(cbct, ct) and not grid_within(ct, cbct)
+    assert not grid_within(Grid.centered((128, 128, 128), (1.5, 1.5, 1.5), (0.0, 0.0, 90.0)), ct)  # sticks out in z
+    big = Grid.centered((200, 200, 120), (2.4, 2.4, 2.3), (0.0, 0.0, 0.0))  # inside, more than half the volume
+    assert not grid_within(big, ct)
+    assert grid_within(big, ct, max_share=0.95)  # 92 % of its volume

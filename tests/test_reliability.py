@@ -151,6 +151,141 @@ def test_integer_cbct_registers_with_a_warning_naming_its_range(pair, tmp_path, 
     result = json.loads((out / "result.json").read_text())
     assert [w for w in result["details"]["warnings"] if expected in w]
     assert not any("fixed" in w for w in result["details"]["warnings"])  # the CT is in HU
+    # flagged whatever the signals say (they are calibrated on HU), naming the image
+    assert result["flagged"] is True and result["confidence"] == 0.0
+    assert result["details"]["signals"]["not_hu"] == ["moving (CBCT)"]
+
+
+@pytest.mark.parametrize("damage", ["gz_cut", "gz_damaged", "nii_cut"])
+def test_a_truncated_or_damaged_nifti_is_refused_before_registering(pair, tmp_path, with_small_network, capsys,
+                                                                   damage):
+    """ITK reads an integer NIfTI whose end is missing (or whose compressed data is damaged) without an error and
+    fills what it lacks with zeros; registered, a real CBCT cut in half came out about 100 mm off with confidence
+    0.83. The completeness check (monai_rigidreg.prefetch.check_nifti_complete) refuses it: exit 2, nothing written."""
+    cbct = sitk.Cast(load_volume(pair["moving"]), sitk.sitkInt16)
+    if damage == "nii_cut":
+        path = tmp_path / "cbct.nii"
+        sitk.WriteImage(cbct, str(path), False)
+        raw = path.read_bytes()
+        path.write_bytes(raw[: len(raw) * 9 // 10])
+        expected = "truncated: "
+    else:
+        path = tmp_path / "cbct.nii.gz"
+        sitk.WriteImage(cbct, str(path), True)
+        raw = bytearray(path.read_bytes())
+        if damage == "gz_cut":
+            raw = raw[: len(raw) * 3 // 4]
+            expected = "its compressed data ends early: the file is truncated"
+        else:  # bytes changed in the middle: the deflate stream or the CRC-32 says so (and ITK may or may not)
+            mid = len(raw) // 2
+            raw[mid: mid + 8] = bytes(b ^ 0x5A for b in raw[mid: mid + 8])
+            expected = ""
+        path.write_bytes(bytes(raw))
+    if damage != "gz_damaged":
+        assert sitk.ReadImage(str(path)).GetSize() == cbct.GetSize()  # what ITK does alone: no error
+    out = tmp_path / "out"
+    code, err = run_cli(capsys, ["register", "--fixed", pair["fixed"], "--moving", path, "--output-dir", out])
+    assert code == 2 and "unreadable or corrupt image file" in last_line(err) and expected in last_line(err), err
+    assert str(path) in last_line(err) and "Traceback" not in err and not out.exists()
+
+
+def test_roi_masks_that_are_not_a_3d_mask_are_refused_naming_the_problem(pair, tmp_path, with_small_network, capsys):
+    masks = {"flat.nii.gz": (sitk.Image([8, 8], sitk.sitkUInt8) + 1, "the ROI mask: expected a 3D volume, got a 2D"),
+             "four_d.nii.gz": (sitk.GetImageFromArray(np.ones((2, 6, 6, 6), np.uint8), isVector=False),
+                               "the ROI mask: expected a 3D volume, got a 4D"),
+             "blank.nii.gz": (sitk.Image([8, 8, 8], sitk.sitkUInt8), "the ROI mask is empty (no non-zero voxel)"),
+             "zero_bytes.nii.gz": (None, "the ROI mask: unreadable or corrupt image file (Unable to determine")}
+    out = tmp_path / "out"
+    base = ["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir", out]
+    for name, (image, expected) in masks.items():
+        path = tmp_path / name
+        if image is None:
+            path.write_bytes(b"")
+        else:
+            sitk.WriteImage(image, str(path))
+        code, err = run_cli(capsys, [*base, "--roi", path])
+        assert code == 2 and expected in last_line(err) and name in last_line(err), err
+        assert "Traceback" not in err and not out.exists()
+    code, err = run_cli(capsys, [*base, "--roi", tmp_path / "missing.nii.gz"])
+    assert code == 2 and "got '" in last_line(err) and "no such file, and not six numbers" in last_line(err)
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused_before_anything_is_read(pair, tmp_path, capsys,
+                                                                                   with_small_network, monkeypatch):
+    """Found by access(2) up front (it sees read-only mounts and immutable folders, even for root), not after the
+    registration with a wrong reason; here access(2) is made to answer no for one folder, and any read fails the
+    test."""
+    from monai_rigidreg import io
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    real_access = os.access
+    monkeypatch.setattr(io.os, "access", lambda p, mode, **kw: False if Path(p) == locked else real_access(p, mode,
+                                                                                                         **kw))
+    monkeypatch.setattr(outputs, "load_volume", lambda *a, **k: pytest.fail("read before the output check"))
+    base = ["register", "--fixed", pair["fixed"], "--moving", pair["moving"]]
+    code, err = run_cli(capsys, [*base, "--output-dir", locked])
+    assert code == 2 and last_line(err).endswith(f"{locked}: the output folder is not writable"), err
+    code, err = run_cli(capsys, [*base, "--output-dir", locked / "sub"])
+    assert code == 2 and f"cannot create the output folder: {locked} is not writable" in last_line(err), err
+    assert listing(tmp_path) == ["locked"]
+
+
+def test_an_immutable_output_folder_is_refused_up_front(pair, tmp_path, with_small_network, capsys):
+    """The same with a real immutable folder (chattr +i; root may write anywhere else), where the file system and
+    the user allow setting it."""
+    import shutil
+
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    if shutil.which("chattr") is None or subprocess.run(["chattr", "+i", str(locked)], capture_output=True).returncode:
+        pytest.skip("chattr +i is not available here (needs root and a file system with the immutable flag)")
+    try:
+        t = time.perf_counter()
+        code, err = run_cli(capsys, ["register", "--fixed", pair["fixed"], "--moving", pair["moving"],
+                                     "--output-dir", locked / "sub"])
+        assert code == 2 and f"{locked} is not writable" in last_line(err), err
+        code, err = run_cli(capsys, ["register", "--fixed", pair["fixed"], "--moving", pair["moving"],
+                                     "--output-dir", locked])
+        assert code == 2 and "the output folder is not writable" in last_line(err), err
+        assert time.perf_counter() - t < 5.0  # no registration ran
+    finally:
+        subprocess.run(["chattr", "-i", str(locked)], check=True)
+    assert listing(tmp_path) == ["locked"]
+
+
+def test_the_note_that_no_reg_is_written_comes_only_with_written_outputs(pair, tmp_path, with_small_network, capsys,
+                                                                          caplog):
+    bad = tmp_path / "nan.nii.gz"
+    image = load_volume(pair["moving"])
+    image[2, 3, 4] = float("nan")
+    sitk.WriteImage(image, str(bad))
+    with caplog.at_level("INFO", logger="monai_rigidreg"):
+        assert run_cli(capsys, ["register", "--fixed", pair["fixed"], "--moving", bad, "--output-dir",
+                                tmp_path / "a"])[0] == 2
+    assert "no DICOM Spatial Registration" not in caplog.text  # a refused run says nothing about outputs
+    caplog.clear()
+    with caplog.at_level("INFO", logger="monai_rigidreg"):
+        assert run_cli(capsys, ["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--no-qc",
+                                "--output-dir", tmp_path / "b"])[0] == 0
+    messages = [r.getMessage() for r in caplog.records]
+    note = [i for i, m in enumerate(messages) if m.startswith("no DICOM Spatial Registration")]
+    done = [i for i, m in enumerate(messages) if m.startswith("registered ")]
+    assert len(note) == 1 and len(done) == 1 and note[0] < done[0]
+
+
+def test_a_fixed_image_inside_a_larger_moving_one_gets_a_swapped_inputs_warning(pair, small_registrar):
+    """A CBCT given as --fixed and the CT as --moving registers (the inverse transform, couch shifts of the wrong
+    sign) with a warning in the result; the usual order gets none. On the clinical-geometry and paper-protocol
+    benchmark pairs the rule never fires in the usual order (``python benchmarks/bench_damaged_inputs.py``, last
+    line: 102 pairs, bench_damaged_inputs_0.4.9_2026-12-03.txt)."""
+    ct = load_volume(pair["fixed"])
+    nx, ny, nz = ct.GetSize()
+    inner = ct[nx // 4: 3 * nx // 4, ny // 4: 3 * ny // 4, nz // 4: 3 * nz // 4]  # keeps its physical place
+    swapped = small_registrar(inner, ct, assess=False, resample_moving=False)
+    assert [w for w in swapped.details.get("warnings", []) if "the fixed image lies inside the moving one" in w]
+    usual = small_registrar(ct, inner, assess=False, resample_moving=False)
+    assert not [w for w in usual.details.get("warnings", []) if "lies inside" in w]
 
 
 def test_flagged_result_exits_0_or_3_with_fail_on_flag(pair, tmp_path, with_small_network, capsys, monkeypatch):
