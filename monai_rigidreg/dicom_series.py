@@ -120,7 +120,10 @@ def check_distinct_inputs(fixed: str | Path, moving: str | Path, fixed_series_ui
                      "Python)", m)
 
 
-def read_dicom_series(directory: Path, series_uid: str | None) -> sitk.Image:
+def read_dicom_series(directory: Path, series_uid: str | None, warnings: list[str] | None = None) -> sitk.Image:
+    """The series ``series_uid`` (default: the largest) of ``directory`` with every slice at its true position
+    (:func:`_on_true_slice_positions`); the warnings it logs are appended to ``warnings`` too (for an audit trail
+    that does not depend on the log level)."""
     series = list_dicom_series(directory)
     chosen = select_dicom_series(directory, series_uid, series)
     if series_uid is None and len(series) > 1:
@@ -137,7 +140,8 @@ def read_dicom_series(directory: Path, series_uid: str | None) -> sitk.Image:
         raise InputError(f"could not read DICOM series {series_uid} ({first_line(exc)})", directory) from exc
     finally:
         sitk.ProcessObject.SetGlobalWarningDisplay(warn)
-    return _on_true_slice_positions(image, reader, files, directory, series_uid)
+    return _on_true_slice_positions(image, reader, files, directory, series_uid,
+                                    [] if warnings is None else warnings)
 
 
 SLICE_GAP_TOLERANCE = 0.01
@@ -158,8 +162,13 @@ def _slice_origins(reader: sitk.ImageSeriesReader, n: int) -> np.ndarray | None:
     return np.asarray(out, dtype=np.float64)
 
 
+def _warn(warnings: list[str], text: str) -> None:
+    logger.warning("%s", text)
+    warnings.append(text)
+
+
 def _on_true_slice_positions(image: sitk.Image, reader: sitk.ImageSeriesReader, files: list[str], directory: Path,
-                             series_uid: str) -> sitk.Image:
+                             series_uid: str, warnings: list[str]) -> sitk.Image:
     """``image`` (a series read by ITK, which spaces the slices evenly at their mean gap) with every slice at its
     true position.
 
@@ -174,8 +183,8 @@ def _on_true_slice_positions(image: sitk.Image, reader: sitk.ImageSeriesReader, 
         return image
     ipp = _slice_origins(reader, n)
     if ipp is None:
-        logger.warning("%s: DICOM series %s: a slice has no Image Position (Patient); the slices are taken as evenly "
-                       "spaced (%.4g mm)", directory, series_uid, image.GetSpacing()[2])
+        _warn(warnings, f"{directory}: DICOM series {series_uid}: a slice has no Image Position (Patient); the slices "
+                        f"are taken as evenly spaced ({image.GetSpacing()[2]:.4g} mm)")
         return image
     normal = np.asarray(image.GetDirection(), dtype=np.float64).reshape(3, 3)[:, 2]
     rel = ipp - ipp[0]
@@ -225,9 +234,9 @@ def _on_true_slice_positions(image: sitk.Image, reader: sitk.ImageSeriesReader, 
     regular.SetOrigin(image.GetOrigin())
     regular.SetDirection(image.GetDirection())
     regular.SetSpacing((spacing[0], spacing[1], dz))
-    logger.warning("%s: DICOM series %s: the slices are unevenly spaced (%s); resampled from %d slices onto a regular "
-                   "grid of %d slices at %.4g mm, each interpolated linearly between the slices around it",
-                   directory, series_uid, listed, n, m, dz)
+    _warn(warnings, f"{directory}: DICOM series {series_uid}: the slices are unevenly spaced ({listed}); resampled "
+                    f"from {n} slices onto a regular grid of {m} slices at {dz:.4g} mm, each interpolated linearly "
+                    "between the slices around it")
     return regular
 
 

@@ -86,6 +86,25 @@ def read_error_reason(exc: BaseException, path: str | Path) -> str:
     MetaImage reader ends a short read of an existing file with ``Reason: No such file or directory`` (the errno text
     of an unrelated call), and its "no reader" error carries a ``sitk::ERROR:`` prefix."""
     reason = first_line(exc)
-    if reason.startswith("Reason:") and Path(path).exists():
+    p = Path(path)
+    if reason.startswith("Reason:") and p.is_file():
+        data = _metaimage_data_file(p)
+        if data is not None and not data.is_file():
+            return f"its voxel data file {data} does not exist (or is not a file)"
         return "its voxel data could not be read: the file ends early or is damaged"
     return re.sub(r"^sitk::ERROR: ", "", reason)
+
+
+def _metaimage_data_file(path: Path) -> Path | None:
+    """The separate data file a MetaImage header (``.mhd``) names in ``ElementDataFile``; ``None`` for data in the
+    file itself (``LOCAL``, ``.mha``), a list of files, or a header that cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(65536).decode("latin-1")
+    except OSError:
+        return None
+    match = re.search(r"^\s*ElementDataFile\s*=\s*(.+?)\s*$", head, re.MULTILINE)
+    if match is None or match.group(1).upper() == "LOCAL" or match.group(1).upper().startswith("LIST") \
+            or "%" in match.group(1):
+        return None
+    return path.parent / match.group(1)

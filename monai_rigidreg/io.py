@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import os
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -110,10 +110,11 @@ def check_output_dir(path: str | Path, overwrite: bool = False, allow_existing: 
     # the folder is written aside, next to it, and renamed into place (monai_rigidreg.staging): its parent (or the
     # nearest folder above that exists) must take new entries, and an existing folder must be writable, found here
     # rather than after the work (access(2) also sees read-only mounts and immutable folders, even for root)
-    above = next((d for d in p.absolute().parents if d.exists()), None)
+    target = p.resolve() if p.is_symlink() else p  # staging replaces a linked folder where it lies
+    above = next((d for d in target.absolute().parents if d.exists()), None)
     if above is not None and not os.access(above, os.W_OK | os.X_OK):
         raise InputError(f"cannot create the output folder: {above} is not writable", p)
-    if p.is_dir() and not os.access(p, os.W_OK | os.X_OK):
+    if target.is_dir() and not os.access(target, os.W_OK | os.X_OK):
         raise InputError("the output folder is not writable", p)
     return p
 
@@ -168,11 +169,22 @@ def check_volume(image: sitk.Image, path: str | Path | None = None, check_finite
     return image
 
 
+def _ran_here(check: Any, path: Path) -> Future:
+    """``check(path)`` run in this thread, as a finished future (its error kept, raised by ``result()``)."""
+    future: Future = Future()
+    try:
+        future.set_result(check(path))
+    except Exception as exc:  # noqa: BLE001 - kept for the caller, who raises it where a worker's would be
+        future.set_exception(exc)
+    return future
+
+
 def load_volume(
     path: str | Path,
     series_uid: str | None = None,
     pixel_type: int | None = sitk.sitkFloat32,
     check_finite: bool = True,
+    warnings: list[str] | None = None,
 ) -> sitk.Image:
     """Read a 3D volume: NIfTI (``.nii``, ``.nii.gz``), MetaImage, NRRD, or a DICOM series directory.
 
@@ -181,6 +193,8 @@ def load_volume(
         series_uid: for a DICOM directory with several series, the one to read (default: the largest).
         pixel_type: SimpleITK pixel type to cast to (default float32); ``None`` keeps the stored type.
         check_finite: raise for NaN/inf voxels.
+        warnings: a list the warnings of the read are appended to (they are logged too), e.g. a DICOM series
+            resampled across a slice gap.
 
     Returns:
         the volume as a ``SimpleITK.Image`` (LPS geometry as SimpleITK reads it). A DICOM series whose slice gaps
@@ -198,7 +212,7 @@ def load_volume(
     folder = p.is_dir()
     prefetched = None if folder else take_prefetched(p)  # a read the command started while it imported
     if folder:
-        image = read_dicom_series(p, series_uid)
+        image = read_dicom_series(p, series_uid, warnings)
     elif prefetched is not None and prefetched[0].exception() is None:
         image, nifti_check, complete_check = prefetched
         image = image.result()
@@ -207,12 +221,16 @@ def load_volume(
         # the second reads (nibabel's NaN check, the NIfTI completeness check) run while SimpleITK reads: all
         # decompress without holding the GIL (benchmarks/bench_inference_speed.py: a 256^3 float32 CT in 0.20 s
         # instead of 0.31 s on 2 cores)
-        pool = ThreadPoolExecutor(max_workers=2)
-        if check_finite and needs_nan_check(p):
-            nifti_check = pool.submit(check_nifti_finite, p)
-        if is_nifti(p):
-            complete_check = pool.submit(check_nifti_complete, p)
-        pool.shutdown(wait=False)
+        checks = ([check_nifti_finite] if check_finite and needs_nan_check(p) else []) + (
+            [check_nifti_complete] if is_nifti(p) else [])
+        try:
+            pool = ThreadPoolExecutor(max_workers=2)
+            futures = [pool.submit(check, p) for check in checks]
+            pool.shutdown(wait=False)
+        except RuntimeError:  # no thread to be had (a process limit): the checks run here, before the read
+            futures = [_ran_here(check, p) for check in checks]
+        nifti_check = futures[0] if checks and checks[0] is check_nifti_finite else None
+        complete_check = futures[-1] if checks and checks[-1] is check_nifti_complete else None
         try:
             image = sitk.ReadImage(str(p))
         except RuntimeError as exc:

@@ -12,7 +12,6 @@ import contextlib
 import json
 import logging
 import sys
-import threading
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -198,9 +197,9 @@ def register_files(
     provenance = registration_provenance(fixed, moving, fixed_series_uid, moving_series_uid,
                                          bundle=getattr(registrar, "source", {}), device=str(registrar.device))
     position, position_source, position_problem = _patient_position(provenance["inputs"]["fixed"], patient_position)
-    with _logged_warnings("monai_rigidreg") as load_warnings:  # e.g. a DICOM series resampled over a slice gap
-        fixed_img = load_volume(fixed, series_uid=fixed_series_uid)
-        moving_img = load_volume(moving, series_uid=moving_series_uid)
+    load_warnings: list[str] = []  # e.g. a DICOM series resampled over a slice gap
+    fixed_img = load_volume(fixed, series_uid=fixed_series_uid, warnings=load_warnings)
+    moving_img = load_volume(moving, series_uid=moving_series_uid, warnings=load_warnings)
     result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps, fine_stage=fine_stage,
                        global_init=global_init, roi=roi, match=match, keep_couch=keep_couch)
     result.provenance = provenance
@@ -232,27 +231,6 @@ def register_files(
 NO_REG_FOR_FILES = ("no DICOM Spatial Registration (registration.dcm) written: it needs both inputs as DICOM series "
                     "(NIfTI and other files carry no UIDs to refer to); build one with "
                     "monai_rigidreg.dicom_reg.write_spatial_registration and user-given UIDs")
-
-
-@contextlib.contextmanager
-def _logged_warnings(name: str) -> Iterator[list[str]]:
-    """The messages of the warnings (and worse) logged under the logger ``name`` by this thread inside the block,
-    for ``result.json``'s ``details.warnings``; they are logged as usual too."""
-    found: list[str] = []
-    thread = threading.get_ident()
-
-    class _Collect(logging.Handler):
-        def emit(self, record: logging.LogRecord) -> None:
-            if record.thread == thread:
-                found.append(record.getMessage())
-
-    handler = _Collect(logging.WARNING)
-    log = logging.getLogger(name)
-    log.addHandler(handler)
-    try:
-        yield found
-    finally:
-        log.removeHandler(handler)
 
 
 def dicom_references(fixed: str | Path, moving: str | Path, fixed_series_uid: str | None = None,

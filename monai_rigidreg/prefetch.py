@@ -93,33 +93,39 @@ def check_nifti_finite(path: Path) -> None:
         raise InputError(f"volume has {bad} NaN or infinite voxel(s)", path)
 
 
+_NIFTI_BYTES = {2: 1, 4: 2, 8: 4, 16: 4, 32: 8, 64: 8, 128: 3, 256: 1, 512: 2, 768: 4, 1024: 8, 1280: 8, 1536: 16,
+                1792: 16, 2048: 32, 2304: 4}
+"""Bytes per voxel of each NIfTI ``datatype`` code (the readers size the data by it, not by ``bitpix``)."""
+
+
 def _nifti_voxel_bytes(header: bytes) -> tuple[int, int] | None:
     """``(offset of the voxel data, bytes of voxel data)`` a single-file NIfTI-1 or NIfTI-2 header declares (either
-    byte order); ``None`` where the header is not one (ITK refuses or reads it on its own terms)."""
+    byte order; the offset at least the header's size, as nifti1_io reads it); ``None`` where the header is not one
+    or declares something unreadable (ITK refuses or reads it on its own terms)."""
     for order in "<>":
         if len(header) >= 348 and struct.unpack(order + "i", header[:4])[0] == 348:
             if header[344:348] != b"n+1\0":
                 return None
+            datatype = struct.unpack(order + "h", header[70:72])[0]
             dim = struct.unpack(order + "8h", header[40:56])
-            bitpix = struct.unpack(order + "h", header[72:74])[0]
-            offset = int(struct.unpack(order + "f", header[108:112])[0])
+            offset, minimum = struct.unpack(order + "f", header[108:112])[0], 352
             break
         if len(header) >= 540 and struct.unpack(order + "i", header[:4])[0] == 540:
             if header[4:8] != b"n+2\0":
                 return None
-            bitpix = struct.unpack(order + "h", header[14:16])[0]
+            datatype = struct.unpack(order + "h", header[12:14])[0]
             dim = struct.unpack(order + "8q", header[16:80])
-            offset = struct.unpack(order + "q", header[168:176])[0]
+            offset, minimum = struct.unpack(order + "q", header[168:176])[0], 544
             break
     else:
         return None
-    ndim = dim[0]
-    if not 1 <= ndim <= 7 or bitpix <= 0 or any(d <= 0 for d in dim[1: ndim + 1]):
-        return None
+    ndim, size = dim[0], _NIFTI_BYTES.get(datatype)
+    if size is None or not 1 <= ndim <= 7 or any(d <= 0 for d in dim[1: ndim + 1]) or not 0 <= offset < 2**62:
+        return None  # also a NaN or infinite vox_offset
     count = 1
     for d in dim[1: ndim + 1]:
         count *= int(d)
-    return offset, (count * bitpix + 7) // 8
+    return max(int(offset), minimum), count * size
 
 
 def _gunzip_length(path: Path, keep: int) -> tuple[int, bytes]:
@@ -140,10 +146,10 @@ def _gunzip_length(path: Path, keep: int) -> tuple[int, bytes]:
                 if not pending:
                     break
             try:
-                out = inflater.decompress(pending)
+                out = inflater.decompress(pending, 16 * _CHUNK)  # bounded: a very compressible volume stays small
             except zlib.error as exc:
                 raise InputError(f"unreadable or corrupt image file (its compressed data: {exc})", path) from exc
-            pending = b""
+            pending = inflater.unconsumed_tail
             total += len(out)
             if len(head) < keep:
                 head += out[: keep - len(head)]
@@ -171,7 +177,9 @@ def check_nifti_complete(path: Path) -> None:
     Raises:
         InputError: truncated or corrupt; the message says which.
     """
-    if file_suffix(path) == ".nii.gz":
+    with open(path, "rb") as f:
+        compressed = f.read(2) == _GZIP_MAGIC  # ITK reads an uncompressed file named .nii.gz too
+    if compressed:
         total, header = _gunzip_length(path, 544)
     else:
         with open(path, "rb") as f:

@@ -64,7 +64,7 @@ from monai_rigidreg.precision import refine_native
 from monai_rigidreg.provenance import bundle_record
 from monai_rigidreg.region_check import block_shifts
 
-__all__ = ["RegistrationResult", "RigidRegistrar", "register", "check_intensities", "fine_stage_switch"]
+__all__ = ["RegistrationResult", "RigidRegistrar", "register", "check_intensities", "not_hu", "fine_stage_switch"]
 
 logger = logging.getLogger(__name__)
 
@@ -85,7 +85,8 @@ class RegistrationResult:
             the last level: ``swap_estimate`` is its own duration (overlapping ``native_level``; ``confidence``
             includes only the wait for it).
         confidence: score in [0, 1] (see :func:`confidence_score`); ``flagged`` when below the threshold. 0 where
-            an input's intensities are not HU (``details.signals.not_hu`` names it): the signals are calibrated on HU.
+            an input's intensities are certainly not HU (:func:`not_hu`; ``details.signals.not_hu`` names it): the
+            signals are calibrated on HU.
         flagged: likely failure: check the QC figure.
         details: network-only parameters, refinement change, similarity before/after, swap consistency, and
             ``warnings`` (a list of sentences, e.g. an input whose intensities are not HU) where there are any.
@@ -637,9 +638,9 @@ class RigidRegistrar:
         timings: dict[str, float] = {}
         fixed_img = as_image(fixed, "fixed")
         moving_img = as_image(moving, "moving")
-        not_hu = {name: check_intensities(img, name, self.hu_range)
-                  for img, name in ((fixed_img, "fixed (CT)"), (moving_img, "moving (CBCT)"))}
-        warnings = [w for found in not_hu.values() for w in found]
+        checked = {name: _check_hu(img, name, self.hu_range)
+                   for img, name in ((fixed_img, "fixed (CT)"), (moving_img, "moving (CBCT)"))}
+        warnings = [w for found, _ in checked.values() for w in found]
         timings["load"] = time.perf_counter() - t_start
         if not grids_overlap(Grid.from_sitk(fixed_img), Grid.from_sitk(moving_img)):
             raise InputError(
@@ -782,7 +783,7 @@ class RigidRegistrar:
                 net_params = params.copy()
             timings["confidence"] = time.perf_counter() - t
             confidence = signals.pop("confidence")
-            not_hu_inputs = [name for name, found in not_hu.items() if found]
+            not_hu_inputs = [name for name, (_, certain) in checked.items() if certain]
             if not_hu_inputs:
                 # the signals are calibrated on HU images: on others they can pass a gross failure (a uint8 export of
                 # a bench_speed CBCT registered about 24 mm off scored 0.58), so such a result is flagged whatever
@@ -884,31 +885,52 @@ clinical-geometry pair of seeds 1500 and 2500 ends as it did with all four start
 
 
 HU_AIR_LIMIT = -500.0
-"""A CT or CBCT in HU holds air (about -1000 HU) somewhere: an image whose minimum lies above this is not in HU."""
+"""A CT or CBCT in HU holds air (about -1000 HU) somewhere: an image whose minimum lies above this is probably not in
+HU (or is cropped to the body)."""
+EIGHT_BIT_RANGE = 256.0
+"""An image whose intensities span at most this many units is an 8-bit export (or a normalized image), never a CT
+in HU: tissue alone spans fat (-100 HU) to bone (several hundred HU)."""
 
 
 def check_intensities(image: sitk.Image, name: str, hu_range: tuple[float, float] = (-1000.0, 2000.0)) -> list[str]:
     """Check that ``image`` can be registered as a CT/CBCT in Hounsfield units.
 
     Returns:
-        warnings (also logged): an intensity range that is not HU (no air, e.g. a uint8 or int8 export, a
-        normalized or raw-detector image), which the network, trained on HU, reads as something else.
+        warnings (also logged): an intensity range that is not HU, or may not be (no air: e.g. a uint8 or int8
+        export, a normalized or raw-detector image, or a CT cropped to the body), which the network, trained on
+        HU, reads as something else. See :func:`not_hu` for the ranges that are certainly not HU.
 
     Raises:
         InputError: the image is constant (every voxel the same value, e.g. all zero): nothing to register.
     """
+    return _check_hu(image, name, hu_range)[0]
+
+
+def not_hu(lo: float, hi: float) -> bool:
+    """Whether an intensity range ``[lo, hi]`` is certainly not a CT or CBCT in HU: no negative value (an unsigned
+    export, raw detector units, or HU stored without the rescale intercept) or a span of at most
+    :data:`EIGHT_BIT_RANGE`. A range from about -100 HU up, without air, may be a CT cropped to the body: not this."""
+    return lo >= 0.0 or hi - lo <= EIGHT_BIT_RANGE
+
+
+def _check_hu(image: sitk.Image, name: str, hu_range: tuple[float, float]) -> tuple[list[str], bool]:
+    """:func:`check_intensities`' warnings and whether the range is certainly not HU (:func:`not_hu`)."""
     stats = sitk.MinimumMaximumImageFilter()
     stats.Execute(image)
     lo, hi = stats.GetMinimum(), stats.GetMaximum()
     if not hi > lo:
         raise InputError(f"the {name} image is constant (every voxel is {lo:g}): there is nothing to register")
     if lo <= HU_AIR_LIMIT:
-        return []
-    msg = (f"the {name} image's intensities range from {lo:g} to {hi:g}, which is not HU (CT air is about -1000; "
-           f"the network maps {hu_range[0]:g}..{hu_range[1]:g} HU to its input range): convert it to HU first "
-           "(e.g. rescale slope/intercept), or expect a poor, flagged result")
+        return [], False
+    if not_hu(lo, hi):
+        msg = (f"the {name} image's intensities range from {lo:g} to {hi:g}, which is not HU (CT air is about -1000; "
+               f"the network maps {hu_range[0]:g}..{hu_range[1]:g} HU to its input range): convert it to HU first "
+               "(e.g. rescale slope/intercept); the result is flagged")
+    else:
+        msg = (f"the {name} image holds no air: its intensities range from {lo:g} to {hi:g} (air is about -1000 HU): "
+               "if it is not in HU, convert it first; a CT cropped to the body can look like this")
     logger.warning("%s", msg)
-    return [msg]
+    return [msg], not_hu(lo, hi)
 
 
 _DEFAULT_REGISTRARS: dict[tuple[str, str], RigidRegistrar] = {}

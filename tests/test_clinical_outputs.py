@@ -189,3 +189,9 @@ def test_a_dicom_slice_gap_is_recorded_in_result_json(pair, dicom_pair, tmp_path
     warnings = json.loads((out / "result.json").read_text())["details"]["warnings"]
     assert [w for w in warnings if "unevenly spaced" in w and "resampled from" in w]
     assert "unevenly spaced" in caplog.text  # and still logged
+    # whatever the console's verbosity (-qq: errors only), the audit trail keeps it
+    quiet = tmp_path / "quiet"
+    assert main(["register", "--fixed", str(ct), "--moving", str(gappy), "--output-dir", str(quiet), "--no-qc",
+                 "-qq"]) == 0
+    warnings = json.loads((quiet / "result.json").read_text())["details"]["warnings"]
+    assert [w for w in warnings if "unevenly spaced" in w and "resampled from" in w]

@@ -438,7 +438,7 @@ def test_nifti_completeness_check(tmp_path, volume):
     with pytest.raises(InputError, match="compressed data ends early"):
         check_nifti_complete(cut)
     damaged = bytearray(whole.read_bytes())
-    damaged[-6] ^= 0xFF  # the stored length: the stream decodes, its trailer disagrees
+    damaged[-6] ^= 0xFF  # the stored CRC-32 (bytes -8..-5): the stream decodes, its trailer disagrees
     (tmp_path / "damaged.nii.gz").write_bytes(bytes(damaged))
     with pytest.raises(InputError, match="its compressed data: Error -3"):
         check_nifti_complete(tmp_path / "damaged.nii.gz")
@@ -468,3 +468,91 @@ def test_grid_within_is_containment_of_a_smaller_box():
     big = Grid.centered((200, 200, 120), (2.4, 2.4, 2.3), (0.0, 0.0, 0.0))  # inside, more than half the volume
     assert not grid_within(big, ct)
     assert grid_within(big, ct, max_share=0.95)  # 92 % of its volume
+
+
+def _nifti1_bytes(data: np.ndarray, datatype: int, bitpix: int, vox_offset: float) -> bytes:
+    """A single-file NIfTI-1 (little-endian) with a hand-set datatype, bitpix and vox_offset (nibabel would fix
+    them)."""
+    import struct
+
+    hdr = bytearray(348)
+    struct.pack_into("<i", hdr, 0, 348)
+    struct.pack_into("<8h", hdr, 40, 3, *data.shape, 1, 1, 1, 1)
+    struct.pack_into("<hh", hdr, 70, datatype, bitpix)
+    struct.pack_into("<8f", hdr, 76, 1, 1, 1, 1, 0, 0, 0, 0)
+    struct.pack_into("<f", hdr, 108, vox_offset)
+    struct.pack_into("<f", hdr, 112, 1.0)  # scl_slope
+    struct.pack_into("<h", hdr, 252, 1)  # qform_code: scanner
+    hdr[344:348] = b"n+1\0"
+    return bytes(hdr) + bytes(4) + np.ascontiguousarray(data.transpose(2, 1, 0)).tobytes()
+
+
+def test_nifti_completeness_check_reads_the_header_as_the_readers_do(tmp_path):
+    """The voxel bytes come from the datatype (a wrong bitpix is ignored, as ITK ignores it), the data starts at
+    least after the header (nifti1_io's rule for a vox_offset below it), a vox_offset that is not a finite number
+    gives no opinion, and an uncompressed file named .nii.gz is sized as a plain file (ITK reads it)."""
+    import gzip
+
+    from monai_rigidreg.prefetch import check_nifti_complete
+
+    data = np.arange(6 * 5 * 4, dtype=np.int16).reshape(6, 5, 4)
+    wrong_bitpix = tmp_path / "bitpix.nii"
+    wrong_bitpix.write_bytes(_nifti1_bytes(data, 4, 32, 352.0))  # int16 (datatype 4) with bitpix 32
+    assert sitk.ReadImage(str(wrong_bitpix)).GetSize() == (6, 5, 4)
+    check_nifti_complete(wrong_bitpix)
+    zero_offset = tmp_path / "offset0.nii"
+    zero_offset.write_bytes(_nifti1_bytes(data, 4, 16, 0.0)[:-100])  # cut by 100 bytes; data really starts at 352
+    with pytest.raises(InputError, match="truncated: 140 bytes of voxel data where its header declares 240"):
+        check_nifti_complete(zero_offset)
+    for bad in (float("nan"), float("inf")):
+        odd = tmp_path / "odd.nii"
+        odd.write_bytes(_nifti1_bytes(data, 4, 16, bad)[:-100])
+        check_nifti_complete(odd)  # no opinion: no ValueError / OverflowError escapes
+    named_gz = tmp_path / "plain.nii.gz"
+    named_gz.write_bytes(_nifti1_bytes(data, 4, 16, 352.0))
+    check_nifti_complete(named_gz)
+    named_gz.write_bytes(_nifti1_bytes(data, 4, 16, 352.0)[:-2])
+    with pytest.raises(InputError, match="truncated: 238 bytes"):
+        check_nifti_complete(named_gz)
+    whole_gz = tmp_path / "whole.nii.gz"
+    whole_gz.write_bytes(gzip.compress(_nifti1_bytes(data, 4, 16, 352.0)))
+    check_nifti_complete(whole_gz)
+
+
+def test_a_truncated_integer_nifti_is_refused_by_a_plain_load(tmp_path, volume, monkeypatch):
+    """load_volume's own read (no prefetch: the Python API, --datalist, ROI masks) runs the completeness check too,
+    also where no thread can be started (then in line)."""
+    import concurrent.futures
+
+    path = tmp_path / "cut.nii.gz"
+    sitk.WriteImage(sitk.Cast(volume * 100.0, sitk.sitkInt16), str(path))
+    path.write_bytes(path.read_bytes()[:-40])
+    assert sitk.ReadImage(str(path)).GetSize() == volume.GetSize()  # ITK alone: no error
+    with pytest.raises(InputError, match="compressed data ends early: the file is truncated"):
+        load_volume(path)
+
+    def no_thread(*args, **kwargs):
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(concurrent.futures.ThreadPoolExecutor, "submit", no_thread)
+    with pytest.raises(InputError, match="compressed data ends early: the file is truncated"):
+        load_volume(path)
+    whole = tmp_path / "whole.nii.gz"
+    sitk.WriteImage(sitk.Cast(volume * 100.0, sitk.sitkInt16), str(whole))
+    assert load_volume(whole).GetSize() == volume.GetSize()
+
+
+def test_unreadable_metaimage_messages_name_the_real_problem(tmp_path, volume):
+    """ITK ends a failed MetaImage read with an errno text of its own ("No such file or directory") whatever the
+    cause: a .mhd whose data file is missing says so, a truncated .mha says its data ends early."""
+    mhd = tmp_path / "v.mhd"
+    sitk.WriteImage(volume, str(mhd))
+    raw = next(tmp_path.glob("v.*raw"))
+    raw.unlink()
+    with pytest.raises(InputError, match=f"its voxel data file .*{raw.name} does not exist"):
+        load_volume(mhd)
+    mha = tmp_path / "v.mha"
+    sitk.WriteImage(volume, str(mha))
+    mha.write_bytes(mha.read_bytes()[:-100])
+    with pytest.raises(InputError, match="its voxel data could not be read: the file ends early or is damaged"):
+        load_volume(mha)

@@ -229,6 +229,17 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_anything_is_r
     code, err = run_cli(capsys, [*base, "--output-dir", locked / "sub"])
     assert code == 2 and f"cannot create the output folder: {locked} is not writable" in last_line(err), err
     assert listing(tmp_path) == ["locked"]
+    # a link to a folder elsewhere: staging replaces the folder where it lies, so the link's own parent is not asked
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    link = locked / "link"
+    link.symlink_to(elsewhere)
+    from monai_rigidreg.io import check_output_dir
+
+    assert check_output_dir(link) == link
+    (elsewhere / "inner").mkdir()
+    with pytest.raises(InputError, match="cannot create the output folder: .*locked is not writable"):
+        check_output_dir(locked / "new")
 
 
 def test_an_immutable_output_folder_is_refused_up_front(pair, tmp_path, with_small_network, capsys):
@@ -286,6 +297,20 @@ def test_a_fixed_image_inside_a_larger_moving_one_gets_a_swapped_inputs_warning(
     assert [w for w in swapped.details.get("warnings", []) if "the fixed image lies inside the moving one" in w]
     usual = small_registrar(ct, inner, assess=False, resample_moving=False)
     assert not [w for w in usual.details.get("warnings", []) if "lies inside" in w]
+
+
+def test_a_ct_without_air_is_warned_about_but_not_flagged_by_rule(pair, small_registrar):
+    """A CT cropped to the body has no air, yet is in HU: a warning, but no forced flag (only ranges that are
+    certainly not HU are flagged: no negative value, or an 8-bit span)."""
+    from monai_rigidreg.registration import not_hu
+
+    assert not_hu(0, 4095) and not_hu(0, 255) and not_hu(-128, 127) and not_hu(0.0, 1.0)
+    assert not not_hu(-110, 1100) and not not_hu(-1000, 2000)
+    ct = load_volume(pair["fixed"])
+    cropped = sitk.Clamp(ct, lowerBound=-110.0, upperBound=3000.0)  # as if the air were cut away
+    result = small_registrar(cropped, load_volume(pair["moving"]), resample_moving=False)
+    assert [w for w in result.details.get("warnings", []) if "the fixed (CT) image holds no air" in w]
+    assert "not_hu" not in result.details["signals"]
 
 
 def test_flagged_result_exits_0_or_3_with_fail_on_flag(pair, tmp_path, with_small_network, capsys, monkeypatch):
