@@ -475,6 +475,40 @@ def test_dataset_deterministic_resumable_and_monai_loadable(tmp_path):
     )
 
 
+def test_an_interrupted_overwrite_leaves_no_volume_of_the_old_dataset_to_resume_from(tmp_path, monkeypatch):
+    """--overwrite with another seed, interrupted after its first case, then resumed without --overwrite: every
+    case is the new seed's (was: the old seed's cases kept as if finished, under the new ground truth, exit 0)."""
+    from monai_rigidreg.simulation import dataset
+
+    kw = dict(phantom="shepp-logan-asym", protocol="random", num_cases=3, device="cpu", progress=False, **TINY)
+    out = tmp_path / "sim"
+    simulate_dataset(out, seed=7, **kw)
+    (out / "notes.txt").write_text("mine")  # not the writer's: overwrite leaves it
+    real = dataset._run_case
+    calls = []
+
+    def interrupted(cfg, case, out_dir):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(case["case_id"])
+        return real(cfg, case, out_dir)
+
+    monkeypatch.setattr(dataset, "_run_case", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        simulate_dataset(out, seed=8, overwrite=True, **kw)
+    monkeypatch.setattr(dataset, "_run_case", real)
+    assert not (out / "dataset.json").exists()  # no datalist while the dataset is incomplete
+    assert sorted(p.name for p in (out / "cases").iterdir()) == ["case0000_cbct.nii.gz", "case0000_cbct_fov.nii.gz"]
+    resumed = simulate_dataset(out, seed=8, **kw)
+    fresh = simulate_dataset(tmp_path / "fresh", seed=8, **kw)
+    assert json.loads(resumed.read_text()) == json.loads(fresh.read_text())
+    for item in json.loads(fresh.read_text())["training"]:
+        for key in ("fixed", "moving"):
+            a = sitk.GetArrayFromImage(_read(out / item[key]))
+            assert np.array_equal(a, sitk.GetArrayFromImage(_read(tmp_path / "fresh" / item[key]))), item[key]
+    assert (out / "notes.txt").read_text() == "mine"
+
+
 def test_bad_inputs(tmp_path):
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "notes.txt").write_text("keep me")

@@ -30,6 +30,7 @@ import json
 import math
 import os
 import platform
+import re
 import shutil
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -150,7 +151,8 @@ def simulate_dataset(
             CBCT 48^3 at 5 mm).
         seed: master seed.
         device: ``"cpu"``, ``"cuda"`` or ``"auto"``.
-        overwrite: recompute everything even where files exist, and accept a directory holding something else.
+        overwrite: recompute everything even where files exist (the previous dataset's ``dataset.json``,
+            ``simulation.json`` and volumes are removed first), and accept a directory holding something else.
         workers: worker processes for the CBCTs (0: this process).
         progress: show a tqdm progress bar.
         **overrides: any :class:`SimulationConfig` or :class:`CBCTPhysics` field (e.g. ``cbct_spacing=2.0``,
@@ -204,8 +206,29 @@ def _finished_volumes(out: Path) -> list[Path]:
     return [p for p in out.glob("*/*.nii.gz") if not p.name.startswith(".")]
 
 
+_OWN_VOLUMES = {"cases": re.compile(r"case\d{4,}_cbct(_fov)?\.nii\.gz"),
+                "objects": re.compile(r"obj\d{3,}_simct\.nii\.gz")}
+"""The volumes a dataset folder holds, by subfolder: what ``overwrite`` removes before it writes anything."""
+
+
+def _remove_previous(out: Path) -> None:
+    """Before an ``overwrite``: the previous dataset's datalist, record and volumes go first, so that an interrupted
+    run can never leave another configuration's volumes to be taken for finished cases of this one (a resume keeps
+    any volume it finds under its name). Files this writer does not make are left."""
+    for name in ("dataset.json", "simulation.json"):  # the datalist first: no stale ground truth survives
+        (out / name).unlink(missing_ok=True)
+    for sub, pattern in _OWN_VOLUMES.items():
+        folder = out / sub
+        if folder.is_dir():
+            for f in folder.iterdir():
+                if pattern.fullmatch(f.name) and f.is_file():
+                    f.unlink()
+
+
 def _simulate_into(out: Path, cfg: SimulationConfig, dev: torch.device, overwrite: bool, progress: bool) -> Path:
     """The writing part of :func:`simulate_dataset`, into the checked folder ``out``."""
+    if overwrite:
+        _remove_previous(out)
     meta = {"config": cfg.identity(), "runtime": {"device": str(dev), "workers": cfg.workers}, "versions": _versions()}
     (out / "simulation.json").write_text(json.dumps(meta, indent=2))
 
