@@ -15,6 +15,7 @@ import pytest
 import SimpleITK as sitk
 
 from monai_rigidreg.cli import build_parser
+from monai_rigidreg.errors import OutputExistsError
 from monai_rigidreg.evaluation import evaluate_datalist, write_html_report
 from monai_rigidreg.evaluation.evaluate import load_datalist, true_params
 from monai_rigidreg.evaluation.overlays import OVERLAY_MAX_BYTES, OverlayGallery, needs_attention
@@ -226,9 +227,12 @@ def test_overlay_cap_and_no_html(tiny_dataset, tmp_path):
                             progress=False, max_overlays=1)
     assert len(list((tmp_path / "one" / "report_files").glob("*.png"))) == 3  # 2 problem cases + 1 other
     assert len(parse(out["paths"]["html"]).imgs) == 3
-    # a second run into the same folder leaves only its own overlays
+    # a second run into the same folder needs overwrite, and leaves only its own overlays
+    with pytest.raises(OutputExistsError):
+        evaluate_datalist(tiny_dataset, ["network"], tmp_path / "one", registrar=StubRegistrar(tiny_dataset),
+                          progress=False, max_overlays=0)
     evaluate_datalist(tiny_dataset, ["network"], tmp_path / "one", registrar=StubRegistrar(tiny_dataset),
-                      progress=False, max_overlays=0)
+                      progress=False, max_overlays=0, overwrite=True)
     assert len(list((tmp_path / "one" / "report_files").glob("*.png"))) == 2
     out = evaluate_datalist(tiny_dataset, ["network"], tmp_path / "none", registrar=StubRegistrar(tiny_dataset),
                             progress=False, html=False)
@@ -251,6 +255,38 @@ def test_a_failed_evaluation_leaves_no_overlays(tiny_dataset, tmp_path):
         evaluate_datalist(tiny_dataset, ["network"], tmp_path / "a" / "b", registrar=Breaks(tiny_dataset),
                           progress=False)
     assert not (tmp_path / "a").exists()
+
+
+def test_an_evaluation_replaces_only_an_earlier_report_and_only_when_it_completes(tiny_dataset, tmp_path):
+    """A folder holding other files is refused, with or without overwrite (the user's cases.csv was replaced); an
+    overwrite that fails (or is interrupted) leaves the earlier report, overlays included, as it was."""
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "cases.csv").write_text("mine")
+    (user / "notes.txt").write_text("mine too")
+    for overwrite in (False, True):
+        with pytest.raises(OutputExistsError):
+            evaluate_datalist(tiny_dataset, ["network"], user, registrar=StubRegistrar(tiny_dataset), progress=False,
+                              overwrite=overwrite)
+    assert (user / "cases.csv").read_text() == "mine" and sorted(p.name for p in user.iterdir()) == [
+        "cases.csv", "notes.txt"]
+    report = tmp_path / "report"
+    evaluate_datalist(tiny_dataset, ["network"], report, registrar=StubRegistrar(tiny_dataset), progress=False)
+    before = {p.relative_to(report): p.read_bytes() for p in report.rglob("*") if p.is_file()}
+    assert any(str(k).startswith("report_files") for k in before)
+
+    class Breaks(StubRegistrar):
+        def __call__(self, fixed, moving, **kwargs):
+            if self.calls == 2:
+                raise KeyboardInterrupt
+            return super().__call__(fixed, moving, **kwargs)
+
+    with pytest.raises(KeyboardInterrupt):
+        evaluate_datalist(tiny_dataset, ["network"], report, registrar=Breaks(tiny_dataset), progress=False,
+                          overwrite=True)
+    after = {p.relative_to(report): p.read_bytes() for p in report.rglob("*") if p.is_file()}
+    assert after == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report", "user"]  # no staging folder left
 
 
 def _small_pair() -> tuple[sitk.Image, sitk.Image]:

@@ -5,9 +5,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from monai_rigidreg.errors import OutputExistsError
-from monai_rigidreg.io import check_output_dir
-
 __all__ = ["add_parser", "run"]
 
 
@@ -42,12 +39,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     from monai_rigidreg.evaluation.evaluate import evaluate_datalist
 
-    check_output_dir(args.output_dir, args.overwrite, allow_existing=True)  # a file, or under a file: refused
-    for name in ("report.md", "report.html"):
-        if (args.output_dir / name).exists() and not args.overwrite:
-            raise OutputExistsError(args.output_dir / name)
+    # the output folder is checked first (evaluate_datalist: a non-empty folder needs --overwrite, which replaces
+    # an earlier report only), and written aside and moved into place at the end
     out = evaluate_datalist(args.datalist, args.method, args.output_dir, bundle=args.bundle, device=args.device,
-                            max_cases=args.max_cases, key=args.key, html=args.html, max_overlays=args.max_overlays)
+                            max_cases=args.max_cases, key=args.key, html=args.html, max_overlays=args.max_overlays,
+                            overwrite=args.overwrite)
     print(out["report"])
     print(f"per-case results: {out['paths']['csv']}")
     if "html" in out["paths"]:

@@ -32,8 +32,9 @@ from monai_rigidreg.geometry import (
     recenter_params,
     target_registration_error,
 )
-from monai_rigidreg.io import load_volume
+from monai_rigidreg.io import check_output_dir, load_volume
 from monai_rigidreg.registration import RigidRegistrar
+from monai_rigidreg.staging import check_replaceable, staged_output_dir
 
 __all__ = ["METHODS", "evaluate_datalist", "load_datalist", "body_points", "LoadedCase", "iter_cases"]
 
@@ -148,6 +149,7 @@ def evaluate_datalist(
     progress: bool = True,
     html: bool = True,
     max_overlays: int = DEFAULT_MAX_OVERLAYS,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Register every case with every method and report.
 
@@ -164,9 +166,18 @@ def evaluate_datalist(
         progress: show a progress bar.
         html: also write ``report.html``, with overlays in ``report_files/`` drawn while each case is loaded.
         max_overlays: overlays for cases that neither failed nor were flagged (those always get one).
+        overwrite: replace an ``output_dir`` holding an earlier report (only one: a folder that also holds other
+            files is refused). The report is written aside and moved into place at the end
+            (:func:`~monai_rigidreg.staging.staged_output_dir`): a failed or interrupted run leaves ``output_dir``
+            as it was.
 
     Returns:
         ``{"summary": ..., "report": markdown text, "cases": [CaseResult, ...], "paths": {...}}``.
+
+    Raises:
+        InputError: an unknown method, a bad ``max_cases`` / ``max_overlays``, a datalist that cannot be used.
+        OutputExistsError: ``output_dir`` is not empty and ``overwrite`` is False, or holds files other than a
+            report's (:data:`REPORT_FILES`).
     """
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
@@ -176,6 +187,10 @@ def evaluate_datalist(
         raise InputError(f"max_cases must be a whole number >= 1, got {max_cases!r}")
     if isinstance(max_overlays, bool) or not isinstance(max_overlays, (int, np.integer)) or max_overlays < 0:
         raise InputError(f"max_overlays must be a whole number >= 0, got {max_overlays!r}")
+    if output_dir is not None:  # before anything slow: a folder that may not be replaced is refused at once
+        check_output_dir(output_dir, overwrite)
+        if overwrite:
+            check_replaceable(output_dir, REPORT_FILES)
     items, _ = load_datalist(datalist, key)
     if max_cases is not None:
         items = items[: int(max_cases)]
@@ -184,7 +199,23 @@ def evaluate_datalist(
     if "elastix" in methods:
         if not elastix_available():
             raise InputError("method 'elastix' needs itk-elastix: pip install 'monai-rigidreg[elastix]'")
+    if output_dir is None:
+        return _evaluate_into(None, items, methods, registrar, progress, html, max_overlays, datalist)
+    out = Path(output_dir)
+    with staged_output_dir(out, overwrite, replaceable=REPORT_FILES) as tmp:
+        result = _evaluate_into(tmp, items, methods, registrar, progress, html, max_overlays, datalist)
+    result["paths"] = {k: out / Path(v).relative_to(tmp) for k, v in result["paths"].items()}
+    return result
 
+
+REPORT_FILES = ("cases.csv", "summary.json", "report.md", "report.html", OVERLAY_DIR)
+"""What :func:`evaluate_datalist` writes into its ``output_dir`` (all that ``overwrite`` may replace)."""
+
+
+def _evaluate_into(folder: Path | None, items: list[dict[str, Any]], methods: Sequence[str], registrar: Any,
+                   progress: bool, html: bool, max_overlays: int, datalist: str | Path) -> dict[str, Any]:
+    """The evaluation loop of :func:`evaluate_datalist`, its report written into ``folder`` (``None``: nowhere)."""
+    output_dir = folder
     gallery = (OverlayGallery(Path(output_dir) / OVERLAY_DIR, methods, max_others=max_overlays)
                if html and output_dir is not None else None)
     cases: list[CaseResult] = []
