@@ -313,6 +313,43 @@ def test_a_ct_without_air_is_warned_about_but_not_flagged_by_rule(pair, small_re
     assert "not_hu" not in result.details["signals"]
 
 
+def test_train_refuses_bad_options_and_an_earlier_run_before_monai_bundle_starts(pair, tmp_path, capsys,
+                                                                                monkeypatch):
+    """Each bad option ends with one line and exit 2 before the bundle run starts (its errors are tracebacks), and
+    a folder holding an earlier run needs --resume (a second run had replaced its model.pt and history.json)."""
+    import subprocess as sp
+
+    monkeypatch.setattr(sp, "call", lambda *a, **k: pytest.fail("monai.bundle started"))
+    good = tmp_path / "train.json"
+    good.write_text(json.dumps({"training": [{"fixed": pair["fixed"], "moving": pair["moving"]}]}))
+    base = ["train", "--datalist", good, "--val-datalist", good, "--output-dir", tmp_path / "runs"]
+    cases = [(["--epochs", "0"], "--epochs must be at least 1, got 0"),
+             (["--epoch-length", "-3"], "--epoch-length must be at least 1"),
+             (["--num-workers", "-1"], "--num-workers must be at least 0"),
+             (["--learning-rate", "nan"], "--learning-rate must be a positive number, got nan"),
+             (["--learning-rate", "-1"], "--learning-rate must be a positive number"),
+             (["--device", "tpu7"], "device 'tpu7' is not a device name"),
+             (["--bundle", tmp_path], "not a bundle: it has no configs/train.json")]
+    for extra, expected in cases:
+        code, err = run_cli(capsys, [*base, *extra])
+        assert code == 2 and expected in last_line(err), (extra, err)
+        assert "Traceback" not in err
+    for text, expected in (("{not json", "not valid JSON"), (json.dumps({"training": []}), "holds no cases"),
+                           (json.dumps({"training": [{"moving": pair["moving"]}]}), "item 0 has no 'fixed'")):
+        bad = tmp_path / "bad.json"
+        bad.write_text(text)
+        code, err = run_cli(capsys, ["train", "--datalist", bad, "--val-datalist", good, "--output-dir",
+                                     tmp_path / "runs"])
+        assert code == 2 and expected in last_line(err), err
+    assert not (tmp_path / "runs").exists()
+    earlier = tmp_path / "runs" / "models"
+    earlier.mkdir(parents=True)
+    (earlier / "model.pt").write_bytes(b"an earlier run's weights")
+    code, err = run_cli(capsys, base)
+    assert code == 2 and "it holds an earlier training run (model.pt); pass --resume" in last_line(err), err
+    assert (earlier / "model.pt").read_bytes() == b"an earlier run's weights"
+
+
 def test_flagged_result_exits_0_or_3_with_fail_on_flag(pair, tmp_path, with_small_network, capsys, monkeypatch):
     args = ["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--no-qc"]
     monkeypatch.setattr(registration, "CONFIDENCE_THRESHOLD", 1.01)  # every result flagged

@@ -4,15 +4,16 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
 
 from monai_rigidreg.bundle import default_bundle_path, refuse_package_folders
-from monai_rigidreg.errors import InputError
+from monai_rigidreg.errors import InputError, OutputExistsError
 from monai_rigidreg.io import check_output_dir
 
-__all__ = ["add_parser", "run", "bundle_command"]
+__all__ = ["add_parser", "run", "bundle_command", "check_train_args", "refuse_earlier_run", "RUN_FILES"]
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -47,19 +48,60 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return p
 
 
-def bundle_command(args: argparse.Namespace) -> list[str]:
-    """The ``monai.bundle run`` command line for ``args``."""
+RUN_FILES = ("history.json", "curves.png", "model.pt")
+"""Files a training run leaves in ``--output-dir`` / ``--ckpt-dir`` (with ``checkpoint_*.pt``): a folder holding
+any of them holds an earlier run, which only ``--resume`` may continue."""
+
+
+def check_train_args(args: argparse.Namespace) -> None:
+    """The options and datalists of ``train``, checked before ``monai.bundle`` starts (whose errors are tracebacks).
+
+    Raises:
+        InputError: a missing or unusable datalist (not JSON, no non-empty list of items with ``fixed`` and
+            ``moving``), a count or rate out of range, an unknown device, a missing ``--bundle`` config or
+            ``--init-weights`` file.
+    """
+    from monai_rigidreg.device import resolve_device
+    from monai_rigidreg.evaluation.evaluate import load_datalist
+
+    for path, key in ((args.datalist, "training"), (args.val_datalist, None)):
+        load_datalist(path, key)  # JSON, a non-empty list of items with fixed and moving
+    for name, value, least in (("--epochs", args.epochs, 1), ("--epoch-length", args.epoch_length, 1),
+                               ("--num-workers", args.num_workers, 0), ("--nproc", args.nproc, 1)):
+        if value is not None and value < least:
+            raise InputError(f"{name} must be at least {least}, got {value}")
+    if args.learning_rate is not None and not (math.isfinite(args.learning_rate) and args.learning_rate > 0):
+        raise InputError(f"--learning-rate must be a positive number, got {args.learning_rate}")
+    if args.device:
+        resolve_device(args.device)  # an unknown name, or CUDA where there is none
     bundle = (args.bundle or default_bundle_path()).resolve()
-    for p in (args.datalist, args.val_datalist):
-        if not p.is_file():
-            raise InputError("datalist not found", p)
+    if not (bundle / "configs" / "train.json").is_file():
+        raise InputError("not a bundle: it has no configs/train.json", bundle)
     if args.init_weights is not None and not args.init_weights.is_file():
         raise InputError("--init-weights: no such file", args.init_weights)
+
+
+def refuse_earlier_run(output_dir: Path, ckpt_dir: Path) -> None:
+    """Without ``--resume``, folders holding an earlier run (:data:`RUN_FILES`, checkpoints) are refused: training
+    would replace its model.pt and history.json."""
+    found = [f for d in (output_dir, ckpt_dir) for f in (*(d / n for n in RUN_FILES), *d.glob("checkpoint_*.pt"))
+             if f.is_file()]
+    if found:
+        raise OutputExistsError(found[0].parent, f"it holds an earlier training run ({found[0].name}); pass --resume "
+                                                 "to continue it, or choose another --output-dir / --ckpt-dir")
+
+
+def bundle_command(args: argparse.Namespace) -> list[str]:
+    """The ``monai.bundle run`` command line for ``args`` (after :func:`check_train_args`)."""
+    bundle = (args.bundle or default_bundle_path()).resolve()
+    check_train_args(args)
     output_dir = args.output_dir.resolve()
     ckpt_dir = (args.ckpt_dir or args.output_dir / "models").resolve()
     for folder in (output_dir, ckpt_dir):
         check_output_dir(folder, allow_existing=True)  # a file, or under a file: refused before anything runs
     refuse_package_folders(output_dir, ckpt_dir)
+    if not args.resume:
+        refuse_earlier_run(output_dir, ckpt_dir)
     configs = [str(bundle / "configs" / "train.json")]
     if args.nproc > 1:
         configs.append(str(bundle / "configs" / "multi_gpu_train.json"))
