@@ -73,7 +73,7 @@ def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=D
     resolve_device(device)  # a bad device string is refused before anything is simulated
     final = Path(output_dir)
     # written aside, moved into place when complete; --overwrite replaces only an earlier demo folder
-    with staged_output_dir(final, overwrite, replaceable=("data", "registration")) as out:
+    with staged_output_dir(final, overwrite, replaceable=("data", "registration", "demo.json")) as out:
         t0 = time.perf_counter()
         settings = {**DEMO_SIMULATION, **(sim_overrides or {})}
         logger.info("demo 1/3: simulating a Sim-CT and a CBCT of the %s phantom under the known motion", phantom)

@@ -50,6 +50,8 @@ __all__ = [
     "staged_output_dir",
     "register_files",
     "dicom_references",
+    "check_bundle_options",
+    "bundle_evaluate",
     "check_register_inputs",
     "bundle_check_inputs",
     "bundle_errors",
@@ -355,16 +357,41 @@ def bundle_errors() -> Iterator[None]:
         raise SystemExit(143 if isinstance(exc, Terminated) else 130) from None
 
 
+def check_bundle_options(flags: dict[str, Any] | None = None, device: Any = None) -> None:
+    """The bundle's switches and device as ``python -m monai.bundle run`` hands them over: its command line reads
+    ``--refine False`` as the boolean but ``--refine false`` as the text ``"false"``, which Python takes as true (the
+    refinement ran). Each of ``flags`` must be a boolean (or 0 / 1); ``device`` a ``torch.device`` or a name torch
+    knows on this machine (``cpu``, ``cuda``, ``cuda:N``).
+
+    Raises:
+        InputError: the first value that is neither, naming the option.
+    """
+    for name, value in (flags or {}).items():
+        if not (isinstance(value, bool) or (isinstance(value, int) and value in (0, 1))):
+            raise InputError(f"--{name} must be True or False (with capitals on monai.bundle's command line: it "
+                             f"reads 'true' or 'false' as text), got {value!r}")
+    if device is not None and not hasattr(device, "type"):
+        from monai_rigidreg.device import resolve_device
+
+        if str(device) == "auto":
+            raise InputError("--device auto: leave --device out for the automatic choice, or give cpu, cuda or "
+                             "cuda:N")
+        resolve_device(device)
+
+
 def bundle_check_inputs(fixed: str | Path | None, moving: str | Path | None, output_dir: str | Path,
-                        overwrite: bool = False, cascade_steps: Any = None, datalist: str | Path | None = None) -> None:
+                        overwrite: bool = False, cascade_steps: Any = None, datalist: str | Path | None = None,
+                        flags: dict[str, Any] | None = None, device: Any = None) -> None:
     """:func:`check_register_inputs` for the bundle's ``inference.json`` (its first ``initialize`` step, before the
     network is built): a bad input ends the run with one line naming the problem and exit status 2. With a
     ``datalist`` of pairs (batch registration) the datalist must exist and each pair is checked when its turn
-    comes (:class:`~monai_rigidreg.batch.RegistrationEvaluator`).
+    comes (:class:`~monai_rigidreg.batch.RegistrationEvaluator`). ``flags`` and ``device``: as
+    :func:`check_bundle_options`.
 
     For ``python -m monai.bundle run``: it raises ``SystemExit`` rather than an exception.
     """
     with bundle_errors():
+        check_bundle_options(flags, device)
         if not datalist:
             check_register_inputs(fixed, moving, output_dir, overwrite, cascade_steps)
             return
@@ -375,6 +402,22 @@ def bundle_check_inputs(fixed: str | Path | None, moving: str | Path | None, out
         if cascade_steps is not None:
             _check_steps(cascade_steps)
         check_output_dir(output_dir, overwrite, allow_existing=True)
+
+
+def bundle_evaluate(datalist: str | Path, methods: Any, output_dir: str | Path, registrar: RigidRegistrar,
+                    max_cases: Any = None, overwrite: Any = False) -> dict[str, Any]:
+    """:func:`~monai_rigidreg.evaluation.evaluate.evaluate_datalist` for the bundle's ``evaluate.json``: prints the
+    report; a bad datalist, method or output folder ends the run with one line and exit status 2 (was a traceback)."""
+    from monai_rigidreg.evaluation.evaluate import evaluate_datalist
+
+    with bundle_errors():
+        check_bundle_options({"overwrite": overwrite})
+        if isinstance(methods, str) or not isinstance(methods, (list, tuple)):
+            raise InputError(f"--methods must be a list, e.g. \"['network']\", got {methods!r}")
+        out = evaluate_datalist(datalist, list(methods), output_dir, registrar=registrar, max_cases=max_cases,
+                                overwrite=bool(overwrite))
+        print(out["report"])
+        return out
 
 
 def bundle_register_files(registrar: RigidRegistrar, fixed: str | Path, moving: str | Path, output_dir: str | Path,

@@ -325,3 +325,38 @@ def test_bundle_with_an_expression_setting_loads_through_monai(tmp_path):
     (bundle / "configs" / "inference.json").write_text(json.dumps(cfg))
     _, settings = load_bundle_network(bundle)
     assert settings["cascade_steps"] == 2
+
+
+def test_bundle_switches_and_device_are_checked_before_anything_runs(shipped_bundle, fast_pair, tmp_path):
+    """monai.bundle's command line reads ``--refine false`` as the text "false" (true in Python: the refinement had
+    run), so a switch that is not a boolean, or a device torch does not know, ends the run with one line and exit
+    status 2 before the network is built; evaluate.json's bad datalist or existing report likewise (were
+    tracebacks)."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    base = [sys.executable, "-m", "monai.bundle", "run", "--bundle_root", str(shipped_bundle)]
+    infer = [*base, "--config_file", str(shipped_bundle / "configs" / "inference.json"), "--fixed",
+             str(fast_pair["fixed"]), "--moving", str(fast_pair["moving"]), "--output_dir", str(tmp_path / "out")]
+    for extra, expected in ((["--refine", "false"], "--refine must be True or False"),
+                            (["--fine_stage", "maybe"], "--fine_stage must be True or False"),
+                            (["--device", "tpu7"], "device 'tpu7' is not a device name")):
+        proc = subprocess.run([*infer, *extra], capture_output=True, text=True, timeout=300, env=env,
+                              cwd=shipped_bundle)
+        assert proc.returncode == 2 and expected in proc.stderr.strip().splitlines()[-1], proc.stderr[-2000:]
+        assert "Traceback" not in proc.stderr and not (tmp_path / "out").exists()
+    configs = json.dumps([str(shipped_bundle / "configs" / "inference.json"),
+                          str(shipped_bundle / "configs" / "evaluate.json")])
+    evaluate = [*base, "--config_file", configs, "--output_dir", str(tmp_path / "eval")]
+    proc = subprocess.run([*evaluate, "--datalist", str(tmp_path / "missing.json")], capture_output=True, text=True,
+                          timeout=300, env=env, cwd=shipped_bundle)
+    assert proc.returncode == 2 and "no such datalist file" in proc.stderr, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    report = tmp_path / "eval"
+    report.mkdir()
+    (report / "report.md").write_text("an earlier report")
+    datalist = tmp_path / "one.json"
+    datalist.write_text(json.dumps({"training": [{"fixed": str(fast_pair["fixed"]), "moving": str(fast_pair["moving"]),
+                                                  "params": [0.0] * 6}]}))
+    proc = subprocess.run([*evaluate, "--datalist", str(datalist)], capture_output=True, text=True, timeout=300,
+                          env=env, cwd=shipped_bundle)
+    assert proc.returncode == 2 and "already exists" in proc.stderr, proc.stderr[-2000:]
+    assert (report / "report.md").read_text() == "an earlier report"

@@ -38,6 +38,14 @@ def test_demo_promise_holds_on_a_faster_simulation(tmp_path, capsys):
     assert "exists" in capsys.readouterr().err.lower()
     with pytest.raises(OutputExistsError):
         run_demo(out, sim_overrides=FAST_DEMO)
+    # --overwrite replaces an earlier demo (demo.json included: it had been refused as a foreign file), nothing else
+    first = (out / "demo.json").read_text()
+    again = run_demo(out, device="cpu", sim_overrides=FAST_DEMO, overwrite=True)
+    assert json.loads((out / "demo.json").read_text())["tre_mm"] == again["tre_mm"]
+    assert json.loads(first)["true"] == again["true"]
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(OutputExistsError, match="notes.txt"):
+        run_demo(out, device="cpu", sim_overrides=FAST_DEMO, overwrite=True)
 
 
 @pytest.mark.slow
