@@ -10,11 +10,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import time
 from pathlib import Path
 
 import numpy as np
 
+from monai_rigidreg.errors import InputError
 from monai_rigidreg.geometry import PARAM_NAMES, parameter_errors, target_registration_error
 
 __all__ = ["add_parser", "run", "run_demo", "DEMO_MOTION", "DEMO_SIMULATION"]
@@ -71,6 +73,9 @@ def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=D
     from monai_rigidreg.staging import staged_output_dir
 
     resolve_device(device)  # a bad device string is refused before anything is simulated
+    motion = tuple(float(v) for v in motion)
+    if len(motion) != 6 or not all(math.isfinite(v) for v in motion):
+        raise InputError(f"--motion needs six finite numbers (tx ty tz mm, rx ry rz degrees), got {list(motion)}")
     final = Path(output_dir)
     # written aside, moved into place when complete; --overwrite replaces only an earlier demo folder
     with staged_output_dir(final, overwrite, replaceable=("data", "registration", "demo.json")) as out:

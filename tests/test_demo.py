@@ -72,3 +72,10 @@ def test_demo_recovers_the_known_motion_with_the_shipped_weights(tmp_path, capsy
     assert (out / "demo.json").read_text() == before
     with pytest.raises(OutputExistsError):
         run_demo(out)
+
+
+def test_demo_refuses_a_motion_that_is_not_six_finite_numbers(tmp_path, capsys):
+    for motion in (["nan", "0", "0", "0", "0", "0"], ["0", "0", "inf", "0", "0", "0"]):
+        assert main(["demo", "--output-dir", str(tmp_path / "d"), "--motion", *motion]) == 2
+        assert "--motion needs six finite numbers" in capsys.readouterr().err
+    assert not (tmp_path / "d").exists()

@@ -15,7 +15,7 @@ import pytest
 import SimpleITK as sitk
 
 from monai_rigidreg.cli import build_parser
-from monai_rigidreg.errors import OutputExistsError
+from monai_rigidreg.errors import InputError, OutputExistsError
 from monai_rigidreg.evaluation import evaluate_datalist, write_html_report
 from monai_rigidreg.evaluation.evaluate import load_datalist, true_params
 from monai_rigidreg.evaluation.overlays import OVERLAY_MAX_BYTES, OverlayGallery, needs_attention
@@ -287,6 +287,31 @@ def test_an_evaluation_replaces_only_an_earlier_report_and_only_when_it_complete
     after = {p.relative_to(report): p.read_bytes() for p in report.rglob("*") if p.is_file()}
     assert after == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["report", "user"]  # no staging folder left
+
+
+def test_every_case_s_ground_truth_is_checked_before_the_first_registration(tiny_dataset, tmp_path):
+    """A malformed ground truth in the last item was found after all the others were registered (and their work
+    lost, exit 1); it is refused first now, naming the item. A method named twice is refused too."""
+    items = json.loads(Path(tiny_dataset).read_text())["training"]
+    base = Path(tiny_dataset).parent
+    for bad, expected in (({"params": "abc"}, "'params' must be six finite numbers"),
+                          ({"params": [1, 2, 3]}, "'params' must be six finite numbers"),
+                          ({"matrix": [[1, 0], [0, 1]]}, "'matrix' must be 4x4 finite numbers"),
+                          ({"matrix": [[float("nan")] * 4] * 4}, "'matrix' must be 4x4 finite numbers"),
+                          ({}, "has no ground truth")):
+        last = {k: v for k, v in items[-1].items() if k not in ("params", "matrix", "center")}
+        edited = [*items[:-1], {**last, **bad}]
+        datalist = tmp_path / "edited.json"
+        datalist.write_text(json.dumps({"training": [{**it, "fixed": str(base / it["fixed"]),
+                                                      "moving": str(base / it["moving"]),
+                                                      "moving_fov": str(base / it["moving_fov"])} for it in edited]}))
+        stub = StubRegistrar(tiny_dataset)
+        with pytest.raises(InputError, match=rf"item {len(items) - 1} \(.*\)[: ].*{expected[:20]}"):
+            evaluate_datalist(datalist, ["network"], tmp_path / "out", registrar=stub, progress=False)
+        assert stub.calls == 0 and not (tmp_path / "out").exists()
+    with pytest.raises(InputError, match="a method is named twice"):
+        evaluate_datalist(tiny_dataset, ["network", "network"], None, registrar=StubRegistrar(tiny_dataset),
+                          progress=False)
 
 
 def _small_pair() -> tuple[sitk.Image, sitk.Image]:

@@ -509,6 +509,23 @@ def test_an_interrupted_overwrite_leaves_no_volume_of_the_old_dataset_to_resume_
     assert (out / "notes.txt").read_text() == "mine"
 
 
+@pytest.mark.parametrize(("option", "expected"), [
+    ({"seed": -1}, "'seed' must be a whole number >= 0"),
+    ({"max_translation": -5.0}, "'max_translation' must be a number >= 0"),
+    ({"max_rotation": float("nan")}, "'max_rotation' must be a number >= 0"),
+    ({"sdd": 100.0}, "need 0 < sod < sdd"),
+    ({"phantom_radius_mm": -5.0}, "'phantom_radius_mm' must be a number > 0"),
+    ({"num_objects": 0}, "'num_objects' must be a number > 0"),
+    ({"supersample": 0}, "'supersample' must be a whole number >= 1"),
+    ({"workers": -1}, "'workers' must be a whole number >= 0"),
+])
+def test_simulation_numbers_out_of_range_are_input_errors(tmp_path, option, expected):
+    """These ended in an internal error (exit 1) or were silently clamped and recorded as given."""
+    with pytest.raises(InputError, match=expected):
+        simulate_dataset(tmp_path / "x", num_cases=1, device="cpu", progress=False, **{**TINY, **option})
+    assert not (tmp_path / "x").exists()
+
+
 def test_bad_inputs(tmp_path):
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "notes.txt").write_text("keep me")

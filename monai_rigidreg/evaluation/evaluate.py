@@ -91,6 +91,36 @@ def true_params(item: dict[str, Any], center: np.ndarray) -> np.ndarray:
     raise InputError(f"datalist item {item.get('case_id', '?')} has no ground truth (params or matrix)")
 
 
+def check_ground_truth(items: Sequence[dict[str, Any]], path: str | Path | None = None) -> None:
+    """Every item's ground truth usable before anything is registered: a ``matrix`` of 4x4 finite numbers (an
+    affine row ``0 0 0 1`` last) or ``params`` of six finite numbers (and, if given, a ``center`` of three).
+
+    Raises:
+        InputError: naming the first item that has none or a malformed one.
+    """
+    def numbers(value: Any, shape: tuple[int, ...]) -> bool:
+        try:
+            a = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            return False
+        return a.shape == shape and bool(np.all(np.isfinite(a)))
+
+    for i, item in enumerate(items):
+        name = f"item {i} ({item.get('case_id', Path(str(item.get('moving', '?'))).name)})"
+        if "matrix" in item:
+            if not numbers(item["matrix"], (4, 4)) or not np.allclose(np.asarray(item["matrix"], float)[3],
+                                                                      [0, 0, 0, 1]):
+                raise InputError(f"{name}: 'matrix' must be 4x4 finite numbers with a last row 0 0 0 1", path)
+        elif "params" in item:
+            if not numbers(item["params"], (6,)):
+                raise InputError(f"{name}: 'params' must be six finite numbers (tx ty tz mm, rx ry rz degrees), "
+                                 f"got {item['params']!r}", path)
+            if "center" in item and not numbers(item["center"], (3,)):
+                raise InputError(f"{name}: 'center' must be three finite numbers (LPS mm)", path)
+        else:
+            raise InputError(f"{name} has no ground truth ('params' or 'matrix')", path)
+
+
 def body_points(fixed: sitk.Image, threshold_hu: float = -400.0, max_points: int = 5000) -> np.ndarray:
     """Physical points (mm) inside the body of a CT: voxels above ``threshold_hu`` (subsampled)."""
     mask = sitk.BinaryThreshold(fixed, threshold_hu, 1e9, 1, 0)
@@ -182,6 +212,8 @@ def evaluate_datalist(
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise InputError(f"unknown method(s) {unknown}; choose from {METHODS}")
+    if len(set(methods)) != len(methods):
+        raise InputError(f"a method is named twice in {list(methods)}")
     if max_cases is not None and (isinstance(max_cases, bool) or not isinstance(max_cases, (int, np.integer))
                                   or max_cases < 1):
         raise InputError(f"max_cases must be a whole number >= 1, got {max_cases!r}")
@@ -194,6 +226,7 @@ def evaluate_datalist(
     items, _ = load_datalist(datalist, key)
     if max_cases is not None:
         items = items[: int(max_cases)]
+    check_ground_truth(items, datalist)  # all of them before the first registration
     if any(m.startswith("network") for m in methods) and registrar is None:
         registrar = RigidRegistrar.from_bundle(bundle, device=device)
     if "elastix" in methods:

@@ -125,6 +125,21 @@ class SimulationConfig:
         if str(self.device).startswith("cuda") and not torch.cuda.is_available():
             raise InputError("device 'cuda' was asked for but CUDA is not available (use --device cpu or auto)")
         self.physics = _physics_dict(self.physics)
+        ranges = (("seed", self.seed, 0, "a whole number >= 0"), ("max_translation", self.max_translation, 0,
+                  "a number >= 0 (mm)"), ("max_rotation", self.max_rotation, 0, "a number >= 0 (degrees)"),
+                  ("object_margin_mm", self.object_margin_mm, 0, "a number >= 0 (mm)"),
+                  ("supersample", self.supersample, 1, "a whole number >= 1"),
+                  ("workers", self.workers, 0, "a whole number >= 0"))
+        for name, value, least, what in ranges:
+            if not (math.isfinite(value) and value >= least):
+                raise _value_error(name, value, what)
+        for name in ("num_objects", "phantom_radius_mm", "simct_photons"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise _value_error(name, value, "a number > 0 (or None)")
+        if not (math.isfinite(self.sod) and math.isfinite(self.sdd) and 0 < self.sod < self.sdd):
+            raise InputError(f"the source-isocentre and source-detector distances need 0 < sod < sdd, got sod "
+                             f"{self.sod} and sdd {self.sdd} mm")
         if self.phantom not in PHANTOMS:
             p = Path(self.phantom).expanduser()
             if not p.exists():
