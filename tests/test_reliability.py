@@ -329,7 +329,10 @@ def test_train_refuses_bad_options_and_an_earlier_run_before_monai_bundle_starts
              (["--learning-rate", "nan"], "--learning-rate must be a positive number, got nan"),
              (["--learning-rate", "-1"], "--learning-rate must be a positive number"),
              (["--device", "tpu7"], "device 'tpu7' is not a device name"),
-             (["--bundle", tmp_path], "not a bundle: it has no configs/train.json")]
+             (["--bundle", tmp_path], "not a bundle: it has no configs/train.json"),
+             (["--init-weights", good], "--init-weights: not a readable PyTorch checkpoint"),
+             (["--set", "ckpt_dir=" + str(BUNDLE / "models")], "inside the installed monai-rigidreg package"),
+             (["--set", "epochs"], "--set expects KEY=VALUE")]
     for extra, expected in cases:
         code, err = run_cli(capsys, [*base, *extra])
         assert code == 2 and expected in last_line(err), (extra, err)

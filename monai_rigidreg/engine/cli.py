@@ -77,8 +77,19 @@ def check_train_args(args: argparse.Namespace) -> None:
     bundle = (args.bundle or default_bundle_path()).resolve()
     if not (bundle / "configs" / "train.json").is_file():
         raise InputError("not a bundle: it has no configs/train.json", bundle)
-    if args.init_weights is not None and not args.init_weights.is_file():
-        raise InputError("--init-weights: no such file", args.init_weights)
+    if args.init_weights is not None:
+        if not args.init_weights.is_file():
+            raise InputError("--init-weights: no such file", args.init_weights)
+        import torch
+
+        try:
+            torch.load(args.init_weights, map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint: its own error text is named
+            raise InputError(f"--init-weights: not a readable PyTorch checkpoint ({type(exc).__name__}: "
+                             f"{str(exc).splitlines()[0] if str(exc) else ''})", args.init_weights) from exc
+    for kv in args.set:
+        if "=" not in kv:
+            raise InputError(f"--set expects KEY=VALUE, got {kv!r}")
 
 
 def refuse_earlier_run(output_dir: Path, ckpt_dir: Path) -> None:
@@ -95,8 +106,10 @@ def bundle_command(args: argparse.Namespace) -> list[str]:
     """The ``monai.bundle run`` command line for ``args`` (after :func:`check_train_args`)."""
     bundle = (args.bundle or default_bundle_path()).resolve()
     check_train_args(args)
-    output_dir = args.output_dir.resolve()
-    ckpt_dir = (args.ckpt_dir or args.output_dir / "models").resolve()
+    sets = dict(kv.split("=", 1) for kv in args.set)
+    # --set output_dir=... / ckpt_dir=... override the options on the bundle's command line: checked as they are
+    output_dir = Path(sets.get("output_dir", args.output_dir)).resolve()
+    ckpt_dir = Path(sets.get("ckpt_dir", args.ckpt_dir or output_dir / "models")).resolve()
     for folder in (output_dir, ckpt_dir):
         check_output_dir(folder, allow_existing=True)  # a file, or under a file: refused before anything runs
     refuse_package_folders(output_dir, ckpt_dir)
