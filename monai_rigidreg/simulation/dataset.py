@@ -107,18 +107,20 @@ def _prepare_output(out: Path, cfg: SimulationConfig, overwrite: bool) -> None:
     if out.is_dir() and any(out.iterdir()) and not overwrite:
         if not meta.is_file():
             raise OutputExistsError(
-                out, "it is a non-empty directory that is not a simulated dataset; pass overwrite=True"
+                out, "it is a non-empty directory that is not a simulated dataset; --overwrite (overwrite=True) to "
+                "use it"
             )
         try:
             old = json.loads(meta.read_text())["config"]
         except (ValueError, KeyError) as exc:
-            raise OutputExistsError(out, f"its simulation.json is unreadable ({exc}); pass overwrite=True") from exc
+            raise OutputExistsError(out, f"its simulation.json is unreadable ({exc}); --overwrite (overwrite=True) to "
+                                         "replace it") from exc
         if old != cfg.identity():
             diff = sorted(k for k in set(old) | set(cfg.identity()) if old.get(k) != cfg.identity().get(k))
             raise OutputExistsError(
                 out,
                 f"it holds a dataset of another configuration (differs in {diff}); "
-                "pass overwrite=True or choose another directory",
+                "--overwrite (overwrite=True) or choose another directory",
             )
 
 
