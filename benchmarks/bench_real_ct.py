@@ -252,7 +252,7 @@ def main() -> int:
         info = {it["case_id"]: it for it in items}
         t0 = time.perf_counter()
         res = evaluate_datalist(dl, methods, args.output_dir / "eval" / name, registrar=registrar, device=args.device,
-                                progress=False, max_overlays=0)
+                                progress=False, max_overlays=0, overwrite=True)  # this script's own report folder
         t_eval = time.perf_counter() - t0
         ident = identity_tre(items)
         rows = []

@@ -91,8 +91,10 @@ def main() -> None:
     lists_used: list[Path] = []
     for dl in lists:
         if args.max_cases is not None:
-            dl = subset_datalist(dl, args.max_cases, args.output_dir / dl.parent.name)
-        res = evaluate_datalist(dl, methods, args.output_dir / dl.parent.name, registrar=registrar, progress=False)
+            # beside, not inside, the report folder: evaluate_datalist replaces a folder of its own files only
+            dl = subset_datalist(dl, args.max_cases, args.output_dir / "subsets" / dl.parent.name)
+        res = evaluate_datalist(dl, methods, args.output_dir / dl.parent.name, registrar=registrar, progress=False,
+                                overwrite=True)
         all_cases += res["cases"]
         print(f"\n## {dl.parent.name} ({len(res['cases']) // len(methods)} cases)\n")
         lists_used.append(dl)
