@@ -17,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import SimpleITK as sitk
 
 from monai_rigidreg import __version__
@@ -367,7 +368,7 @@ def check_bundle_options(flags: dict[str, Any] | None = None, device: Any = None
         InputError: the first value that is neither, naming the option.
     """
     for name, value in (flags or {}).items():
-        if not (isinstance(value, bool) or (isinstance(value, int) and value in (0, 1))):
+        if not (isinstance(value, (bool, np.bool_)) or (isinstance(value, int) and value in (0, 1))):
             raise InputError(f"--{name} must be True or False (with capitals on monai.bundle's command line: it "
                              f"reads 'true' or 'false' as text), got {value!r}")
     if device is not None and not hasattr(device, "type"):

@@ -345,6 +345,27 @@ def test_train_refuses_bad_options_and_an_earlier_run_before_monai_bundle_starts
                                      tmp_path / "runs"])
         assert code == 2 and expected in last_line(err), err
     assert not (tmp_path / "runs").exists()
+    # a training checkpoint (network, optimizer, ...) is not weights to start from; the validation datalist is read
+    # under 'training', as train.json reads it
+    import torch
+
+    checkpoint = tmp_path / "checkpoint_checkpoint_epoch=1.pt"
+    torch.save({"network": {"w": torch.zeros(2)}, "optimizer": {"state": {}}}, checkpoint)
+    code, err = run_cli(capsys, [*base, "--init-weights", checkpoint])
+    assert code == 2 and "--init-weights needs the network's weights" in last_line(err), err
+    validation = tmp_path / "val.json"
+    validation.write_text(json.dumps({"validation": [{"fixed": pair["fixed"], "moving": pair["moving"]}]}))
+    code, err = run_cli(capsys, ["train", "--datalist", good, "--val-datalist", validation, "--output-dir",
+                                 tmp_path / "runs"])
+    assert code == 2 and "datalist has none of the keys ['training']" in last_line(err), err
+    # --device auto leaves the bundle its own choice (torch.device('auto') would fail inside monai.bundle)
+    from monai_rigidreg.cli import build_parser
+    from monai_rigidreg.engine.cli import bundle_command
+
+    args = build_parser().parse_args([str(a) for a in [*base, "--device", "auto"]])
+    assert "--device" not in bundle_command(args)
+    args = build_parser().parse_args([str(a) for a in [*base, "--device", "cpu"]])
+    assert bundle_command(args)[bundle_command(args).index("--device") + 1] == "$torch.device('cpu')"
     earlier = tmp_path / "runs" / "models"
     earlier.mkdir(parents=True)
     (earlier / "model.pt").write_bytes(b"an earlier run's weights")

@@ -298,6 +298,7 @@ def test_every_case_s_ground_truth_is_checked_before_the_first_registration(tiny
                           ({"params": [1, 2, 3]}, "'params' must be six finite numbers"),
                           ({"matrix": [[1, 0], [0, 1]]}, "'matrix' must be 4x4 finite numbers"),
                           ({"matrix": [[float("nan")] * 4] * 4}, "'matrix' must be 4x4 finite numbers"),
+                          ({"matrix": np.diag([1.1, 1.0, 1.0, 1.0]).tolist()}, "'matrix' is not a rigid"),
                           ({}, "has no ground truth")):
         last = {k: v for k, v in items[-1].items() if k not in ("params", "matrix", "center")}
         edited = [*items[:-1], {**last, **bad}]

@@ -518,12 +518,25 @@ def test_an_interrupted_overwrite_leaves_no_volume_of_the_old_dataset_to_resume_
     ({"num_objects": 0}, "'num_objects' must be a number > 0"),
     ({"supersample": 0}, "'supersample' must be a whole number >= 1"),
     ({"workers": -1}, "'workers' must be a whole number >= 0"),
+    ({"seed": 10**400}, "'seed' must be"),  # too big for the seeding; math.isfinite overflowed on it
 ])
 def test_simulation_numbers_out_of_range_are_input_errors(tmp_path, option, expected):
     """These ended in an internal error (exit 1) or were silently clamped and recorded as given."""
     with pytest.raises(InputError, match=expected):
         simulate_dataset(tmp_path / "x", num_cases=1, device="cpu", progress=False, **{**TINY, **option})
     assert not (tmp_path / "x").exists()
+
+
+def test_a_ct_inside_the_folders_the_simulation_writes_is_refused(tmp_path):
+    """simulate --overwrite from a CT lying among the previous dataset's volumes would have deleted (or rewritten)
+    its own input."""
+    kw = dict(protocol="random", num_cases=1, device="cpu", progress=False, **TINY)
+    simulate_dataset(tmp_path / "d", phantom="shepp-logan-asym", **kw)
+    ct = tmp_path / "d" / "objects" / "obj000_simct.nii.gz"
+    before = ct.read_bytes()
+    with pytest.raises(InputError, match="lies in a folder this simulation writes"):
+        simulate_dataset(tmp_path / "d", phantom=str(ct), overwrite=True, **kw)
+    assert ct.read_bytes() == before
 
 
 def test_bad_inputs(tmp_path):

@@ -64,8 +64,8 @@ def check_train_args(args: argparse.Namespace) -> None:
     from monai_rigidreg.device import resolve_device
     from monai_rigidreg.evaluation.evaluate import load_datalist
 
-    for path, key in ((args.datalist, "training"), (args.val_datalist, None)):
-        load_datalist(path, key)  # JSON, a non-empty list of items with fixed and moving
+    for path in (args.datalist, args.val_datalist):
+        load_datalist(path, "training")  # JSON, a non-empty list of items with fixed and moving, where train.json reads
     for name, value, least in (("--epochs", args.epochs, 1), ("--epoch-length", args.epoch_length, 1),
                                ("--num-workers", args.num_workers, 0), ("--nproc", args.nproc, 1)):
         if value is not None and value < least:
@@ -83,10 +83,15 @@ def check_train_args(args: argparse.Namespace) -> None:
         import torch
 
         try:
-            torch.load(args.init_weights, map_location="cpu", weights_only=True)
+            state = torch.load(args.init_weights, map_location="cpu", weights_only=True)
         except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint: its own error text is named
             raise InputError(f"--init-weights: not a readable PyTorch checkpoint ({type(exc).__name__}: "
                              f"{str(exc).splitlines()[0] if str(exc) else ''})", args.init_weights) from exc
+        if not (isinstance(state, dict) and state and all(torch.is_tensor(v) for v in state.values())):
+            keys = sorted(state)[:5] if isinstance(state, dict) else type(state).__name__
+            raise InputError(f"--init-weights needs the network's weights (a state dict such as models/model.pt), "
+                             f"got {keys}: a training checkpoint continues with --resume and its --ckpt-dir",
+                             args.init_weights)
     for kv in args.set:
         if "=" not in kv:
             raise InputError(f"--set expects KEY=VALUE, got {kv!r}")
@@ -132,7 +137,7 @@ def bundle_command(args: argparse.Namespace) -> list[str]:
         "resume": True if args.resume else None,
         "init_weights": str(args.init_weights.resolve()) if args.init_weights else None,
     }
-    if args.device:
+    if args.device and args.device != "auto":  # auto: the bundle's own choice (CUDA where there is one)
         overrides["device"] = f"$torch.device('{args.device}')"
     cmd = [sys.executable, "-m", "monai.bundle", "run", "--config_file", json.dumps(configs),
            "--meta_file", str(bundle / "configs" / "metadata.json"),

@@ -111,6 +111,10 @@ def check_ground_truth(items: Sequence[dict[str, Any]], path: str | Path | None 
             if not numbers(item["matrix"], (4, 4)) or not np.allclose(np.asarray(item["matrix"], float)[3],
                                                                       [0, 0, 0, 1]):
                 raise InputError(f"{name}: 'matrix' must be 4x4 finite numbers with a last row 0 0 0 1", path)
+            try:
+                matrix_to_params(np.asarray(item["matrix"], dtype=np.float64), np.zeros(3))
+            except ValueError as exc:
+                raise InputError(f"{name}: 'matrix' is not a rigid transform ({exc})", path) from exc
         elif "params" in item:
             if not numbers(item["params"], (6,)):
                 raise InputError(f"{name}: 'params' must be six finite numbers (tx ty tz mm, rx ry rz degrees), "

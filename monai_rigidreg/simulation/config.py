@@ -131,11 +131,11 @@ class SimulationConfig:
                   ("supersample", self.supersample, 1, "a whole number >= 1"),
                   ("workers", self.workers, 0, "a whole number >= 0"))
         for name, value, least, what in ranges:
-            if not (math.isfinite(value) and value >= least):
+            if not (_finite(value) and value >= least):
                 raise _value_error(name, value, what)
         for name in ("num_objects", "phantom_radius_mm", "simct_photons"):
             value = getattr(self, name)
-            if value is not None and not (math.isfinite(value) and value > 0):
+            if value is not None and not (_finite(value) and value > 0):
                 raise _value_error(name, value, "a number > 0 (or None)")
         if not (math.isfinite(self.sod) and math.isfinite(self.sdd) and 0 < self.sod < self.sdd):
             raise InputError(f"the source-isocentre and source-detector distances need 0 < sod < sdd, got sod "
@@ -191,6 +191,12 @@ def _field_types(cls: type) -> dict[str, Any]:
     """``{field name: resolved annotation}`` of a dataclass."""
     hints = typing.get_type_hints(cls)
     return {f.name: hints[f.name] for f in fields(cls)}
+
+
+def _finite(value: Any) -> bool:
+    """A finite number within what seeds and counts take: an integer below 2^63 (``math.isfinite`` overflows on huge
+    ones, and the random generators take 64 bits), a float that is not NaN or infinite."""
+    return abs(int(value)) < 2**63 if isinstance(value, numbers.Integral) else math.isfinite(value)
 
 
 def _value_error(name: str, value: Any, expected: str) -> InputError:
