@@ -81,48 +81,54 @@ def load_datalist(path: str | Path, key: str | None = None) -> tuple[list[dict[s
     return out, p.parent
 
 
-def true_params(item: dict[str, Any], center: np.ndarray) -> np.ndarray:
-    """Ground truth of a datalist item expressed about ``center`` (the fixed image centre)."""
+def _finite(value: Any, shape: tuple[int, ...]) -> np.ndarray | None:
+    """``value`` as a float64 array of ``shape`` with finite entries, else ``None``."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    return a if a.shape == shape and bool(np.all(np.isfinite(a))) else None
+
+
+def true_params(item: dict[str, Any], center: np.ndarray, name: str | None = None,
+                path: str | Path | None = None) -> np.ndarray:
+    """Ground truth of a datalist item expressed about ``center`` (the fixed image centre): its ``matrix`` (a rigid
+    4x4, last row ``0 0 0 1``), else its ``params`` (six finite numbers, about its ``center`` where given).
+
+    Raises:
+        InputError: no ground truth or a malformed one, naming the item (``name``; default its ``case_id``) and the
+            datalist ``path``.
+    """
+    name = name or f"datalist item {item.get('case_id', '?')}"
     if "matrix" in item:
-        return matrix_to_params(np.asarray(item["matrix"], dtype=np.float64), center)
+        matrix = _finite(item["matrix"], (4, 4))
+        if matrix is None or not np.allclose(matrix[3], [0, 0, 0, 1]):
+            raise InputError(f"{name}: 'matrix' must be 4x4 finite numbers with a last row 0 0 0 1", path)
+        try:
+            return matrix_to_params(matrix, center)
+        except ValueError as exc:
+            raise InputError(f"{name}: 'matrix' is not a rigid transform ({exc})", path) from exc
     if "params" in item:
-        c0 = np.asarray(item.get("center", center), dtype=np.float64)
-        return recenter_params(item["params"], c0, center)
-    raise InputError(f"datalist item {item.get('case_id', '?')} has no ground truth (params or matrix)")
+        params = _finite(item["params"], (6,))
+        if params is None:
+            raise InputError(f"{name}: 'params' must be six finite numbers (tx ty tz mm, rx ry rz degrees), got "
+                             f"{item['params']!r}", path)
+        c0 = _finite(item.get("center", center), (3,))
+        if c0 is None:
+            raise InputError(f"{name}: 'center' must be three finite numbers (LPS mm)", path)
+        return recenter_params(params, c0, center)
+    raise InputError(f"{name} has no ground truth ('params' or 'matrix')", path)
 
 
 def check_ground_truth(items: Sequence[dict[str, Any]], path: str | Path | None = None) -> None:
-    """Every item's ground truth usable before anything is registered: a ``matrix`` of 4x4 finite numbers (an
-    affine row ``0 0 0 1`` last) or ``params`` of six finite numbers (and, if given, a ``center`` of three).
+    """Every item's ground truth usable (:func:`true_params`) before anything is registered.
 
     Raises:
         InputError: naming the first item that has none or a malformed one.
     """
-    def numbers(value: Any, shape: tuple[int, ...]) -> bool:
-        try:
-            a = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            return False
-        return a.shape == shape and bool(np.all(np.isfinite(a)))
-
     for i, item in enumerate(items):
-        name = f"item {i} ({item.get('case_id', Path(str(item.get('moving', '?'))).name)})"
-        if "matrix" in item:
-            if not numbers(item["matrix"], (4, 4)) or not np.allclose(np.asarray(item["matrix"], float)[3],
-                                                                      [0, 0, 0, 1]):
-                raise InputError(f"{name}: 'matrix' must be 4x4 finite numbers with a last row 0 0 0 1", path)
-            try:
-                matrix_to_params(np.asarray(item["matrix"], dtype=np.float64), np.zeros(3))
-            except ValueError as exc:
-                raise InputError(f"{name}: 'matrix' is not a rigid transform ({exc})", path) from exc
-        elif "params" in item:
-            if not numbers(item["params"], (6,)):
-                raise InputError(f"{name}: 'params' must be six finite numbers (tx ty tz mm, rx ry rz degrees), "
-                                 f"got {item['params']!r}", path)
-            if "center" in item and not numbers(item["center"], (3,)):
-                raise InputError(f"{name}: 'center' must be three finite numbers (LPS mm)", path)
-        else:
-            raise InputError(f"{name} has no ground truth ('params' or 'matrix')", path)
+        true_params(item, np.zeros(3), f"item {i} ({item.get('case_id', Path(str(item.get('moving', '?'))).name)})",
+                    path)
 
 
 def body_points(fixed: sitk.Image, threshold_hu: float = -400.0, max_points: int = 5000) -> np.ndarray:
@@ -249,10 +255,10 @@ REPORT_FILES = ("cases.csv", "summary.json", "report.md", "report.html", OVERLAY
 """What :func:`evaluate_datalist` writes into its ``output_dir`` (all that ``overwrite`` may replace)."""
 
 
-def _evaluate_into(folder: Path | None, items: list[dict[str, Any]], methods: Sequence[str], registrar: Any,
+def _evaluate_into(output_dir: Path | None, items: list[dict[str, Any]], methods: Sequence[str], registrar: Any,
                    progress: bool, html: bool, max_overlays: int, datalist: str | Path) -> dict[str, Any]:
-    """The evaluation loop of :func:`evaluate_datalist`, its report written into ``folder`` (``None``: nowhere)."""
-    output_dir = folder
+    """The evaluation loop of :func:`evaluate_datalist`, its report written into ``output_dir`` (``None``:
+    nowhere)."""
     gallery = (OverlayGallery(Path(output_dir) / OVERLAY_DIR, methods, max_others=max_overlays)
                if html and output_dir is not None else None)
     cases: list[CaseResult] = []
