@@ -22,11 +22,12 @@ class InputError(RigidRegError, ValueError):
     """An input (file, image, transform or argument) is missing, unreadable or unsuitable.
 
     Args:
-        message: what is wrong.
+        message: what is wrong (kept as ``reason``).
         path: the offending file, if any; it is named in the message.
     """
 
     def __init__(self, message: str, path: str | Path | None = None) -> None:
+        self.reason = message
         self.path = None if path is None else Path(path)
         super().__init__(f"{self.path}: {message}" if self.path is not None else message)
 

@@ -57,7 +57,7 @@ def parse_roi(roi: RoiLike) -> tuple[float, float, float, float, float, float] |
             try:
                 mask = load_volume(text, pixel_type=None, check_finite=False)
             except InputError as exc:
-                raise InputError(f"the ROI mask: {str(exc).removeprefix(f'{exc.path}: ')}", text) from exc
+                raise InputError(f"the ROI mask: {exc.reason}", text) from exc
             return _check_mask(mask, text)
         try:
             roi = [float(v) for v in text.replace(";", ",").split(",")]
