@@ -142,7 +142,8 @@ def main() -> None:
             load_volume(moving_path)
             checked = "read"
         except InputError as exc:
-            checked = f"InputError: {exc.reason}"
+            # (a checkout before 0.4.9 has no InputError.reason: its message after the path)
+            checked = f"InputError: {getattr(exc, 'reason', str(exc).split(': ', 1)[-1])}"
         out(f"| {name} | {tre:.2f} | {r.confidence:.2f} | {r.flagged} | {warned} | {checked} |")
     out("\nITK alone: the variant read by SimpleITK.ReadImage and registered (monai_rigidreg.register, shipped "
         "bundle); warnings: details.warnings entries (non-HU range, swapped-looking inputs)")
