@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import os
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -25,14 +25,7 @@ from monai_rigidreg.dicom_series import (  # re-exported: the DICOM reading live
 )
 from monai_rigidreg.errors import InputError, OutputExistsError, first_line, read_error_reason
 from monai_rigidreg.geometry import Grid, matrix_to_sitk, sitk_to_matrix
-from monai_rigidreg.prefetch import (
-    check_nifti_complete,
-    check_nifti_finite,
-    file_suffix,
-    is_nifti,
-    needs_nan_check,
-    take_prefetched,
-)
+from monai_rigidreg.prefetch import InLine, file_suffix, start_nifti_checks, take_prefetched
 
 __all__ = [
     "VOLUME_SUFFIXES",
@@ -169,16 +162,6 @@ def check_volume(image: sitk.Image, path: str | Path | None = None, check_finite
     return image
 
 
-def _ran_here(check: Any, path: Path) -> Future:
-    """``check(path)`` run in this thread, as a finished future (its error kept, raised by ``result()``)."""
-    future: Future = Future()
-    try:
-        future.set_result(check(path))
-    except Exception as exc:  # noqa: BLE001 - kept for the caller, who raises it where a worker's would be
-        future.set_exception(exc)
-    return future
-
-
 def load_volume(
     path: str | Path,
     series_uid: str | None = None,
@@ -219,18 +202,14 @@ def load_volume(
         nifti_check = nifti_check if check_finite else None
     else:
         # the second reads (nibabel's NaN check, the NIfTI completeness check) run while SimpleITK reads: all
-        # decompress without holding the GIL (benchmarks/bench_inference_speed.py: a 256^3 float32 CT in 0.20 s
-        # instead of 0.31 s on 2 cores)
-        checks = ([check_nifti_finite] if check_finite and needs_nan_check(p) else []) + (
-            [check_nifti_complete] if is_nifti(p) else [])
+        # decompress without holding the GIL (benchmarks/bench_inference_speed.py; with the NaN check alone, before
+        # 0.4.9: a 256^3 float32 CT in 0.20 s instead of 0.31 s on 2 cores, bench_inference_speed_2026-12-01.txt)
+        pool = ThreadPoolExecutor(max_workers=2)
         try:
-            pool = ThreadPoolExecutor(max_workers=2)
-            futures = [pool.submit(check, p) for check in checks]
-            pool.shutdown(wait=False)
+            nifti_check, complete_check = start_nifti_checks(pool, p, check_finite)
         except RuntimeError:  # no thread to be had (a process limit): the checks run here, before the read
-            futures = [_ran_here(check, p) for check in checks]
-        nifti_check = futures[0] if checks and checks[0] is check_nifti_finite else None
-        complete_check = futures[-1] if checks and checks[-1] is check_nifti_complete else None
+            nifti_check, complete_check = start_nifti_checks(InLine(), p, check_finite)
+        pool.shutdown(wait=False)
         try:
             image = sitk.ReadImage(str(p))
         except RuntimeError as exc:

@@ -18,17 +18,18 @@ from __future__ import annotations
 import struct
 import threading
 import zlib
-from collections.abc import Iterable
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable, Iterable
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import SimpleITK as sitk
 
 from monai_rigidreg.errors import InputError
 
-__all__ = ["check_nifti_complete", "check_nifti_finite", "drop_prefetched", "file_suffix", "is_nifti",
-           "needs_nan_check", "prefetch_volumes", "take_prefetched"]
+__all__ = ["InLine", "check_nifti_complete", "check_nifti_finite", "drop_prefetched", "file_suffix", "is_nifti",
+           "needs_nan_check", "prefetch_volumes", "start_nifti_checks", "take_prefetched"]
 
 _FLOAT_PIXELS = {sitk.sitkFloat32, sitk.sitkFloat64, sitk.sitkVectorFloat32, sitk.sitkVectorFloat64,
                  sitk.sitkComplexFloat32, sitk.sitkComplexFloat64}
@@ -98,34 +99,38 @@ _NIFTI_BYTES = {2: 1, 4: 2, 8: 4, 16: 4, 32: 8, 64: 8, 128: 3, 256: 1, 512: 2, 7
 """Bytes per voxel of each NIfTI ``datatype`` code (the readers size the data by it, not by ``bitpix``)."""
 
 
+_NIFTI_LAYOUTS = (
+    # sizeof_hdr, magic offset and value, datatype offset, dim format and offset, vox_offset format and offset,
+    # the smallest data offset of a single file (header + extension flags)
+    (348, 344, b"n+1\0", 70, "8h", 40, "f", 108, 352),  # NIfTI-1
+    (540, 4, b"n+2\0", 12, "8q", 16, "q", 168, 544),  # NIfTI-2
+)
+"""Where the single-file NIfTI-1 and NIfTI-2 headers keep what :func:`_nifti_voxel_bytes` reads (the standards'
+byte offsets, as nibabel's header classes lay them out)."""
+
+
 def _nifti_voxel_bytes(header: bytes) -> tuple[int, int] | None:
     """``(offset of the voxel data, bytes of voxel data)`` a single-file NIfTI-1 or NIfTI-2 header declares (either
     byte order; the offset at least the header's size, as nifti1_io reads it); ``None`` where the header is not one
     or declares something unreadable (ITK refuses or reads it on its own terms)."""
     for order in "<>":
-        if len(header) >= 348 and struct.unpack(order + "i", header[:4])[0] == 348:
-            if header[344:348] != b"n+1\0":
+        for size, magic_at, magic, type_at, dim_fmt, dim_at, offset_fmt, offset_at, minimum in _NIFTI_LAYOUTS:
+            if len(header) < size or struct.unpack(order + "i", header[:4])[0] != size:
+                continue
+            if header[magic_at: magic_at + 4] != magic:
                 return None
-            datatype = struct.unpack(order + "h", header[70:72])[0]
-            dim = struct.unpack(order + "8h", header[40:56])
-            offset, minimum = struct.unpack(order + "f", header[108:112])[0], 352
-            break
-        if len(header) >= 540 and struct.unpack(order + "i", header[:4])[0] == 540:
-            if header[4:8] != b"n+2\0":
-                return None
-            datatype = struct.unpack(order + "h", header[12:14])[0]
-            dim = struct.unpack(order + "8q", header[16:80])
-            offset, minimum = struct.unpack(order + "q", header[168:176])[0], 544
-            break
-    else:
-        return None
-    ndim, size = dim[0], _NIFTI_BYTES.get(datatype)
-    if size is None or not 1 <= ndim <= 7 or any(d <= 0 for d in dim[1: ndim + 1]) or not 0 <= offset < 2**62:
-        return None  # also a NaN or infinite vox_offset
-    count = 1
-    for d in dim[1: ndim + 1]:
-        count *= int(d)
-    return max(int(offset), minimum), count * size
+            datatype = struct.unpack_from(order + "h", header, type_at)[0]
+            dim = struct.unpack_from(order + dim_fmt, header, dim_at)
+            offset = struct.unpack_from(order + offset_fmt, header, offset_at)[0]
+            ndim, nbytes = dim[0], _NIFTI_BYTES.get(datatype)
+            if nbytes is None or not 1 <= ndim <= 7 or any(d <= 0 for d in dim[1: ndim + 1]) or not (
+                    0 <= offset < 2**62):
+                return None  # also a NaN or infinite vox_offset
+            count = 1
+            for d in dim[1: ndim + 1]:
+                count *= int(d)
+            return max(int(offset), minimum), count * nbytes
+    return None
 
 
 def _gunzip_length(path: Path, keep: int) -> tuple[int, bytes]:
@@ -178,12 +183,10 @@ def check_nifti_complete(path: Path) -> None:
         InputError: truncated or corrupt; the message says which.
     """
     with open(path, "rb") as f:
-        compressed = f.read(2) == _GZIP_MAGIC  # ITK reads an uncompressed file named .nii.gz too
-    if compressed:
+        header = f.read(544)
+    if header.startswith(_GZIP_MAGIC):  # by content: ITK reads an uncompressed file named .nii.gz too
         total, header = _gunzip_length(path, 544)
     else:
-        with open(path, "rb") as f:
-            header = f.read(544)
         total = path.stat().st_size
     declared = _nifti_voxel_bytes(header)
     if declared is None:
@@ -207,6 +210,33 @@ def _key(path: Path) -> tuple[str, int, int, int, int] | None:
         return None
 
 
+def start_nifti_checks(pool: Executor, path: Path, nan_check: bool = True) -> tuple[Future | None, Future | None]:
+    """The second reads of a NIfTI file that run beside SimpleITK's (all decompress without holding the GIL), as
+    ``(NaN check, completeness check)`` futures of ``pool``: :func:`check_nifti_finite` where ``nan_check`` and
+    :func:`needs_nan_check` say so, :func:`check_nifti_complete` for every NIfTI file; ``None`` for those not
+    started. The one list of them, for :func:`prefetch_volumes` and :func:`~monai_rigidreg.io.load_volume`.
+
+    Raises:
+        RuntimeError: ``pool`` could not start a thread (a process limit).
+    """
+    nifti = pool.submit(check_nifti_finite, path) if nan_check and needs_nan_check(path) else None
+    complete = pool.submit(check_nifti_complete, path) if is_nifti(path) else None
+    return nifti, complete
+
+
+class InLine(Executor):
+    """An executor that runs each call at once in the calling thread (where no thread can be started): its futures
+    are finished, an error kept for ``result()`` as a worker's would be."""
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except Exception as exc:  # noqa: BLE001 - kept for the caller, who raises it where a worker's would be
+            future.set_exception(exc)
+        return future
+
+
 def prefetch_volumes(paths: Iterable[str | Path | None]) -> int:
     """Start reading each regular file of ``paths`` in a worker thread (``SimpleITK.ReadImage``, and beside it
     :func:`check_nifti_finite` where :func:`needs_nan_check` says so and :func:`check_nifti_complete` for a NIfTI
@@ -225,8 +255,7 @@ def prefetch_volumes(paths: Iterable[str | Path | None]) -> int:
                 continue
             pool = ThreadPoolExecutor(max_workers=3, thread_name_prefix="monai-rigidreg-read")
             image = pool.submit(sitk.ReadImage, str(p))
-            nifti = pool.submit(check_nifti_finite, p) if needs_nan_check(p) else None
-            complete = pool.submit(check_nifti_complete, p) if is_nifti(p) else None
+            nifti, complete = start_nifti_checks(pool, p)
             pool.shutdown(wait=False)
             _PENDING[key] = (image, nifti, complete)
         started += 1
