@@ -41,7 +41,8 @@ from monai_rigidreg.confidence import cylindrical_fov_mask  # noqa: E402
 from monai_rigidreg.evaluation.evaluate import load_datalist  # noqa: E402
 from monai_rigidreg.geometry import Grid  # noqa: E402
 from monai_rigidreg.image_ops import gaussian_smooth  # noqa: E402
-from monai_rigidreg.io import _check_nifti_finite, load_volume, sitk_to_metatensor  # noqa: E402
+from monai_rigidreg.io import load_volume, sitk_to_metatensor  # noqa: E402
+from monai_rigidreg.prefetch import check_nifti_complete, check_nifti_finite  # noqa: E402
 from monai_rigidreg.registration import RigidRegistrar  # noqa: E402
 from monai_rigidreg.transforms import NormalizeHU, ResampleToNetworkGrid  # noqa: E402
 from monai_rigidreg.transforms.grid import antialias_sigmas, crop_to_grid  # noqa: E402
@@ -60,10 +61,11 @@ def _time_case(reg: RigidRegistrar, it: dict, k: int, tmp: Path, repeats: int,
 
     def sequential_read(path: Path = f32) -> None:
         sitk.ReadImage(str(path))
-        _check_nifti_finite(path)
+        check_nifti_finite(path)
+        check_nifti_complete(path)
 
-    add("read CT float32 .nii.gz, NaN check after the read", median_time(sequential_read, repeats))
-    add("read CT float32 .nii.gz, NaN check overlapped (load_volume)",
+    add("read CT float32 .nii.gz, NaN and completeness checks after the read", median_time(sequential_read, repeats))
+    add("read CT float32 .nii.gz, the same checks overlapped (load_volume)",
         median_time(lambda: load_volume(f32), repeats))
 
     grid = reg.network_grid(fixed, moving)

@@ -90,11 +90,11 @@ def main() -> None:
     all_cases = []
     lists_used: list[Path] = []
     for dl in lists:
-        if args.max_cases is not None:
-            # beside, not inside, the report folder: evaluate_datalist replaces a folder of its own files only
-            dl = subset_datalist(dl, args.max_cases, args.output_dir / "subsets" / dl.parent.name)
-        res = evaluate_datalist(dl, methods, args.output_dir / dl.parent.name, registrar=registrar, progress=False,
-                                overwrite=True)
+        if args.max_cases is not None:  # <output-dir>/<set>/subset.json: the other benchmarks' default datalists
+            dl = subset_datalist(dl, args.max_cases, args.output_dir / dl.parent.name)
+        # the report in a folder of its own (evaluate_datalist replaces a folder holding its own files only)
+        res = evaluate_datalist(dl, methods, args.output_dir / dl.parent.name / "report", registrar=registrar,
+                                progress=False, overwrite=True)
         all_cases += res["cases"]
         print(f"\n## {dl.parent.name} ({len(res['cases']) // len(methods)} cases)\n")
         lists_used.append(dl)
