@@ -642,12 +642,13 @@ class RigidRegistrar:
                    for img, name in ((fixed_img, "fixed (CT)"), (moving_img, "moving (CBCT)"))}
         warnings = [w for found, _ in checked.values() for w in found]
         timings["load"] = time.perf_counter() - t_start
-        if not grids_overlap(Grid.from_sitk(fixed_img), Grid.from_sitk(moving_img)):
+        fixed_grid, moving_grid = Grid.from_sitk(fixed_img), Grid.from_sitk(moving_img)
+        if not grids_overlap(fixed_grid, moving_grid):
             raise InputError(
                 "the CT (fixed) and CBCT (moving) do not overlap in physical space: check that both are in the "
                 "same patient coordinate system (origins and directions)"
             )
-        if grid_within(Grid.from_sitk(fixed_img), Grid.from_sitk(moving_img)):
+        if grid_within(fixed_grid, moving_grid):
             msg = ("the fixed image lies inside the moving one and covers less than half of it, as a CBCT would the "
                    "planning CT: check that fixed (--fixed) is the CT and moving (--moving) the CBCT (swapped, the "
                    "transform and the couch shifts come out inverted)")
@@ -802,7 +803,7 @@ class RigidRegistrar:
             registered = resample(moving_img, fixed_img, params_to_sitk(params, grid_center))
             timings["resample"] = time.perf_counter() - t
         # report about the fixed image centre (the project's convention); the network grid may be centred elsewhere
-        fixed_center = Grid.from_sitk(fixed_img).center()
+        fixed_center = fixed_grid.center()
         params = recenter_params(params, grid_center, fixed_center)
         net_fixed = recenter_params(net_params, grid_center, fixed_center)
         details["network_params"] = {n: float(v) for n, v in zip(PARAM_NAMES, net_fixed)}
