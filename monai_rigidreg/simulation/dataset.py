@@ -179,14 +179,12 @@ def simulate_dataset(
         **overrides,
     )
     out = Path(output_dir).expanduser()
-    if cfg.phantom not in PHANTOMS:
-        written = [(out / sub).resolve() for sub in _OWN_VOLUMES]
-        if any(Path(cfg.phantom).resolve().is_relative_to(w) for w in written):
-            raise InputError("the CT to simulate from lies in a folder this simulation writes (its cases/ or "
-                             "objects/): copy it elsewhere first", cfg.phantom)
     _prepare_output(out, cfg, overwrite)
     dev = resolve_device(cfg.device)
     if cfg.phantom not in PHANTOMS:
+        if any(Path(cfg.phantom).resolve().is_relative_to((out / sub).resolve()) for sub in _OWN_VOLUMES):
+            raise InputError("the CT to simulate from lies in a folder this simulation writes (its cases/ or "
+                             "objects/): copy it elsewhere first", cfg.phantom)
         # read once here (again per object later) so that a corrupt, 2D or non-finite CT is refused before anything
         # is written
         load_ct(cfg.phantom)
@@ -218,25 +216,25 @@ _OWN_VOLUMES = {"cases": re.compile(r"case\d{4,}_cbct(_fov)?\.nii\.gz"),
 """The volumes a dataset folder holds, by subfolder: what ``overwrite`` removes before it writes anything."""
 
 
-def _remove_previous(out: Path, keep: str | Path | None = None) -> None:
+def _remove_previous(out: Path) -> None:
     """Before an ``overwrite``: the previous dataset's datalist, record and volumes go first, so that an interrupted
     run can never leave another configuration's volumes to be taken for finished cases of this one (a resume keeps
-    any volume it finds under its name). Files this writer does not make are left."""
+    any volume it finds under its name). Files this writer does not make are left (an input CT among the volumes
+    was refused before: :func:`simulate_dataset`)."""
     for name in ("dataset.json", "simulation.json"):  # the datalist first: no stale ground truth survives
         (out / name).unlink(missing_ok=True)
-    kept = Path(keep).resolve() if keep is not None else None  # the input CT, should it lie among them
     for sub, pattern in _OWN_VOLUMES.items():
         folder = out / sub
         if folder.is_dir():
             for f in folder.iterdir():
-                if pattern.fullmatch(f.name) and f.is_file() and f.resolve() != kept:
+                if pattern.fullmatch(f.name) and f.is_file():
                     f.unlink()
 
 
 def _simulate_into(out: Path, cfg: SimulationConfig, dev: torch.device, overwrite: bool, progress: bool) -> Path:
     """The writing part of :func:`simulate_dataset`, into the checked folder ``out``."""
     if overwrite:
-        _remove_previous(out, keep=None if cfg.phantom in PHANTOMS else cfg.phantom)
+        _remove_previous(out)
     meta = {"config": cfg.identity(), "runtime": {"device": str(dev), "workers": cfg.workers}, "versions": _versions()}
     (out / "simulation.json").write_text(json.dumps(meta, indent=2))
 
