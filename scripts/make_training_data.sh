@@ -43,7 +43,9 @@ import json, sys
 from pathlib import Path
 root = Path(sys.argv[1])
 items = []
-for sub in sorted(p for p in root.iterdir() if p.is_dir() and p.name != "val_paper" and "interior" not in p.name):
+# the simulate datasets only (scripts/make_clinical_training_data.py writes its own datalist under clinical/)
+for sub in sorted(p for p in root.iterdir() if p.is_dir() and p.name not in ("val_paper", "clinical")
+                  and "interior" not in p.name and (p / "dataset.json").is_file()):
     for it in json.loads((sub / "dataset.json").read_text())["training"]:
         for k in ("fixed", "moving", "moving_fov"):
             it[k] = f"{sub.name}/{it[k]}"

@@ -9,20 +9,26 @@ from monai_rigidreg.engine.handlers import (
     ResumeHandler,
     TrainingCheckpointSaver,
     TrainingCurveHandler,
+    TrainingProgressHandler,
     plot_history,
 )
 from monai_rigidreg.engine.inferer import StagedInferer
 from monai_rigidreg.engine.metrics import RigidErrorHandler, RigidErrorMetric, error_handlers, from_registration_output
+from monai_rigidreg.engine.sampler import MotionRange, RigidPairSampler, load_sources
 
 __all__ = [
     "RegistrationPrepareBatch",
     "RegistrationCriterion",
     "StagedInferer",
+    "RigidPairSampler",
+    "MotionRange",
+    "load_sources",
     "canonical_grid",
     "registration_transforms",
     "LossTermsHandler",
     "OptionalTensorBoardStatsHandler",
     "TrainingCurveHandler",
+    "TrainingProgressHandler",
     "ResumeHandler",
     "TrainingCheckpointSaver",
     "plot_history",
