@@ -169,9 +169,9 @@ class ContextCorrelationNet(nn.Module):
         num_res_units: int = 2,
         norm: str | tuple = "INSTANCE",
         feat_channels: Sequence[int] = (32, 32, 16),
-        radius: Sequence[int] = (2, 2),
+        radius: Sequence[int] = (2, 1),
         temperature: float = 30.0,
-        passes: Sequence[int] = (2, 2),
+        passes: Sequence[int] = (2, 1),
         context_factor: int = 2,
         context_size: Sequence[int] | None = None,
         robust_iterations: int = 2,
@@ -361,28 +361,37 @@ class ContextCorrelationNet(nn.Module):
 
 
 def subcell_shifts(cost: torch.Tensor, radius: int) -> torch.Tensor:
-    """The best integer shift of each cell refined by a parabola per axis through it and its two neighbours.
+    """The best integer shift of each cell refined by a parabola per axis.
 
     ``cost``: ``[B, N, K**3]`` similarities of ``N`` cells at the integer shifts within ``+-radius`` (row-major over
     ``(dx, dy, dz)``, ``K = 2 * radius + 1``) -> ``[B, N, 3]`` float64 shifts in cells: the integer argmax plus an
-    offset in ``[-0.5, 0.5]`` per axis (0 on the window's border or where the costs are not concave there). The
-    values of :func:`~monai_rigidreg.networks.correlation_net.parabola_shifts`, with the argmax taken in the cost's
-    own dtype and only the seven costs it needs per cell gathered (differentiable through them).
+    offset in ``[-0.5, 0.5]`` per axis, the vertex of the parabola through three neighbouring costs along the axis
+    (0 where they are not concave). Inside the window the three are centred on the argmax; on its border they are
+    the argmax and its two inner neighbours (the parabola is extrapolated by up to half a cell), so that a match
+    half a cell from the border is read as such, not snapped onto the border: with ``radius`` 1 a residual of half a
+    cell would otherwise come out as a whole cell in every cell whose argmax falls on the border
+    (``tests/test_context_net.py``). Differentiable through the gathered costs; the argmax is taken in the cost's
+    own dtype.
     """
     k = 2 * int(radius) + 1
+    if k < 3:
+        raise ValueError(f"radius must be >= 1, got {radius}")
     best = cost.argmax(-1, keepdim=True)  # [B, N, 1]
     index = torch.cat([best // (k * k), (best // k) % k, best % k], -1)  # [B, N, 3]
-    peak = cost.gather(-1, best).to(torch.float64)
     shifts = []
     for axis, stride in enumerate((k * k, k, 1)):
         i = index[..., axis:axis + 1]
-        inner = (i > 0) & (i < k - 1)
-        lo = cost.gather(-1, best - stride * inner.long()).to(torch.float64)
-        hi = cost.gather(-1, best + stride * inner.long()).to(torch.float64)
-        den = lo - 2.0 * peak + hi
-        concave = inner & (den < -1e-9)
-        offset = torch.where(concave, 0.5 * (lo - hi) / torch.where(concave, den, torch.ones_like(den)),
-                             torch.zeros_like(den)).clamp(-0.5, 0.5)
+        centre = i.clamp(1, k - 2)  # the middle of the three costs
+        mid = best + stride * (centre - i)
+        lo = cost.gather(-1, mid - stride).to(torch.float64)
+        c0 = cost.gather(-1, mid).to(torch.float64)
+        hi = cost.gather(-1, mid + stride).to(torch.float64)
+        den = lo - 2.0 * c0 + hi
+        concave = den < -1e-9
+        vertex = torch.where(concave, 0.5 * (lo - hi) / torch.where(concave, den, torch.ones_like(den)),
+                             torch.zeros_like(den))  # relative to the middle
+        offset = (vertex + (centre - i).to(torch.float64)).clamp(-0.5, 0.5)  # relative to the argmax
+        offset = torch.where(concave, offset, torch.zeros_like(offset))
         shifts.append(i.to(torch.float64) - radius + offset)
     return torch.cat(shifts, -1)
 

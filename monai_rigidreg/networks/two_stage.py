@@ -71,8 +71,15 @@ class TwoStageRigidNet(nn.Module):
         ``fixed_weight``: optional ``[B, 1, x, y, z]`` match-region weights in [0, 1] on the fixed grid (region of
         interest, bone, body without couch): they weigh the learned network's cells in its rigid fit (a regression
         with ``forward_levels``; an MLP regression sees the whole grid) and the fine stage's residuals.
+        ``context``: the CT on the context grid for a regression that takes one (``takes_context``); such a
+        regression also takes it as the second block of ``fixed``'s channels (``[B, 2 * C, ...]``), which is how
+        :class:`~monai_rigidreg.registration.RigidRegistrar` passes it through the cascade. Training (``train()``
+        mode) adds the levels' match records under ``"matches"``.
         """
         extra: dict[str, Any] = {}
+        c = self.in_channels
+        if getattr(self.regression, "takes_context", False) and context is None and fixed.shape[1] == 2 * c:
+            fixed, context = fixed[:, :c], fixed[:, c:]  # the registrar's form: the context as more fixed channels
         if getattr(self.regression, "takes_context", False):
             levels, records = self.regression.forward_levels(moving, fixed, context, fixed_weight, matches=True)
             coarse = levels[-1]
