@@ -51,7 +51,8 @@ __all__ = ["MotionRange", "PairSource", "RigidPairSampler", "load_sources", "sou
            "sources_from_cts"]
 
 AIR_HU = -1000.0
-BODY_HU = -500.0
+MIN_VIEW = 0.15
+"""Least share of the network grid a sample's field of view must cover (else it is drawn again)."""
 
 
 @dataclass(frozen=True)
@@ -335,8 +336,16 @@ class RigidPairSampler(IterableDataset):
         while True:
             yield self.draw(rng)
 
-    def draw(self, rng: np.random.Generator) -> dict[str, Any]:
-        """One sample (see the module doc) from the random generator ``rng``."""
+    def draw(self, rng: np.random.Generator, tries: int = 10) -> dict[str, Any]:
+        """One sample (see the module doc) from the random generator ``rng``: drawn again (up to ``tries``
+        times) while less than :data:`MIN_VIEW` of the grid is in the field of view."""
+        for _ in range(max(1, int(tries)) - 1):
+            sample = self._draw(rng)
+            if float(sample["moving_fov"].mean()) >= MIN_VIEW:
+                return sample
+        return self._draw(rng)
+
+    def _draw(self, rng: np.random.Generator) -> dict[str, Any]:
         kind = self._kinds[int(rng.choice(len(self._kinds), p=self._kind_p))]
         pool = [s for s in self.sources if s.kind == kind]
         src = pool[int(rng.integers(len(pool)))]
@@ -390,23 +399,24 @@ class RigidPairSampler(IterableDataset):
 
     # -----------------------------------------------------------------------------------------------------------
     def _field_of_view(self, covered: torch.Tensor, grid: Grid, rng: np.random.Generator) -> torch.Tensor:
-        """The scanner's field of view on the grid: a cylinder about the grid's z axis (and a slab along z), never
-        reaching voxels the source does not cover (so the source's own edge stays out of view)."""
+        """The scanner's field of view on the grid: a cylinder about the grid's z axis cut by a slab along z, never
+        reaching voxels the source does not cover (so the source's own edge stays out of view). The drawn
+        half-length is shortened first to the nearest uncovered voxel inside the drawn radius (a CT shorter than
+        the scan), then the radius to the nearest uncovered voxel inside that slab."""
         x, y, z = _axes(grid, covered.device)
-        r2 = x[:, None, None] ** 2 + y[None, :, None] ** 2  # [X, Y, 1]
-        zz = z.abs()[None, None, :].expand(covered.shape[1:])
-        rr = r2.sqrt().expand(covered.shape[1:])
+        shape = covered.shape[1:]
+        rr = (x[:, None, None] ** 2 + y[None, :, None] ** 2).sqrt().expand(shape)
+        zz = z.abs()[None, None, :].expand(shape)
         outside = ~covered[0]
-        r_max = float(rr[outside].min()) if bool(outside.any()) else math.inf
         radius = rng.uniform(*self.fov_radius) if rng.random() < self.fov_prob else math.inf
-        radius = min(radius, r_max - 1.0)
-        cyl = rr <= radius
-        # the slab: the largest half-length whose slab inside the cylinder is covered
-        out_in_cyl = outside & cyl
-        h_max = float(zz[out_in_cyl].min()) if bool(out_in_cyl.any()) else math.inf
         half = rng.uniform(*self.fov_half_length) if rng.random() < self.fov_prob else math.inf
-        half = min(half, h_max - 1.0)
-        return (cyl & (zz <= half))[None]
+        limit = outside & (rr <= radius)
+        if bool(limit.any()):
+            half = min(half, float(zz[limit].min()) - 0.5 * grid.spacing[2])
+        limit = outside & (zz <= half)
+        if bool(limit.any()):
+            radius = min(radius, float(rr[limit].min()) - 0.5 * min(grid.spacing[:2]))
+        return ((rr <= radius) & (zz <= half))[None]
 
     def _paint_couch(self, moving: torch.Tensor, body: torch.Tensor, grid: Grid, rng: np.random.Generator
                      ) -> torch.Tensor:
