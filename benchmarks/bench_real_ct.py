@@ -59,10 +59,29 @@ SIM_SETTINGS = (
     "cbct_size=64", "cbct_spacing=2.0", "projection_spacing=2.0",
     "photons=3e4", "scatter_to_primary=0.5", "beam_hardening=0.02",
 )
+CBCT_GRIDS = {  # --cbct: the CBCT's grid (the rest of SIM_SETTINGS is kept)
+    "64x2": ("cbct_size=64", "cbct_spacing=2.0", "projection_spacing=2.0"),
+    "128x1.6": ("cbct_size=128", "cbct_spacing=1.6", "projection_spacing=1.6"),
+}
+
+
+def sim_settings(cbct: str = "64x2") -> tuple[str, ...]:
+    """:data:`SIM_SETTINGS` with the CBCT grid of ``cbct`` (a key of :data:`CBCT_GRIDS`)."""
+    grid = CBCT_GRIDS[cbct]
+    keys = {g.split("=")[0] for g in grid}
+    return tuple(s for s in SIM_SETTINGS if s.split("=")[0] not in keys) + grid
+
+
+def data_name(ct: Path, protocol: str = "paper", cbct: str = "64x2") -> str:
+    """The CT's data folder name: its name, with the protocol and CBCT grid where they are not the defaults (so the
+    default protocol's data stays where earlier runs put it)."""
+    suffix = ("" if protocol == "paper" else f"_{protocol}") + ("" if cbct == "64x2" else f"_cbct{cbct}")
+    return ct_name(ct) + suffix
 AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
 
 
-def simulate_command(ct: Path, out_dir: Path, num_cases: int, seed: int, display: bool = False) -> list[str]:
+def simulate_command(ct: Path, out_dir: Path, num_cases: int, seed: int, display: bool = False,
+                     protocol: str = "paper", cbct: str = "64x2") -> list[str]:
     """The ``monai-rigidreg simulate`` call for one CT (``display``: as a user would type it)."""
     exe = shutil.which("monai-rigidreg")
     if display:
@@ -70,8 +89,8 @@ def simulate_command(ct: Path, out_dir: Path, num_cases: int, seed: int, display
     else:
         base = [exe] if exe else [sys.executable, "-m", "monai_rigidreg.cli"]
     cmd = [*base, "simulate", "--no-progress", "-q", "--output-dir", str(out_dir), "--phantom", str(ct),
-           "--protocol", "paper", "--num-cases", str(num_cases), "--seed", str(seed), "--device", "cpu"]
-    for s in SIM_SETTINGS:
+           "--protocol", protocol, "--num-cases", str(num_cases), "--seed", str(seed), "--device", "cpu"]
+    for s in sim_settings(cbct):
         cmd += ["--set", s]
     return cmd
 
@@ -154,7 +173,13 @@ def main() -> int:
     ap.add_argument("--ct", nargs="+", default=None, metavar="PATH",
                     help=f"CT volumes (NIfTI or DICOM folder, HU); default {' '.join(DEFAULT_CTS)} from the data "
                          "folder ($MONAI_RIGIDREG_DATA or ../shared/data)")
-    ap.add_argument("--num-cases", type=int, default=21, help="paper-protocol cases per CT (default 21; max 63)")
+    ap.add_argument("--num-cases", type=int, default=21, help="cases per CT (default 21; paper: max 63, multi30: 8)")
+    ap.add_argument("--protocol", choices=("paper", "multi30"), default="paper",
+                    help="motions: the reference's paper protocol (default) or multi30, 6-DoF motions with "
+                         "|rx| = |ry| = |rz| = 30 degrees (data in DIR/<name>_multi30)")
+    ap.add_argument("--cbct", choices=tuple(CBCT_GRIDS), default="64x2",
+                    help="the CBCT grid: 64^3 at 2 mm (default, the paper's 128 mm interior field of view) or "
+                         "128^3 at 1.6 mm (205 mm; data in DIR/<name>_cbct128x1.6)")
     ap.add_argument("--seed", type=int, default=6000, help="simulation seed, the same for every CT (default 6000)")
     ap.add_argument("--threads", type=int, default=2, help="torch, SimpleITK and ITK/elastix threads (default 2)")
     ap.add_argument("--output-dir", type=Path, default=Path("bench_out/real_ct"),
@@ -211,8 +236,8 @@ def main() -> int:
     ]
     for line in head:
         out(line)
-    out(f"methods: {' '.join(methods)}; {args.num_cases} paper-protocol cases per CT, seed {args.seed}; simulation "
-        f"settings: {' '.join(SIM_SETTINGS)}")
+    out(f"methods: {' '.join(methods)}; {args.num_cases} {args.protocol}-protocol cases per CT, seed {args.seed}; "
+        f"simulation settings: {' '.join(sim_settings(args.cbct))}")
     out()
 
     cts = find_cts(args.ct, out, DEFAULT_CTS)
@@ -236,9 +261,9 @@ def main() -> int:
     timing: list[str] = []
     sim_env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
     for ct in cts:
-        name = ct_name(ct)
+        name = data_name(ct, args.protocol, args.cbct)
         data_dir = args.output_dir / name
-        cmd = simulate_command(ct, data_dir, args.num_cases, args.seed)
+        cmd = simulate_command(ct, data_dir, args.num_cases, args.seed, protocol=args.protocol, cbct=args.cbct)
         reused = (data_dir / "dataset.json").is_file()
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, env=sim_env, capture_output=True, text=True)
@@ -267,7 +292,8 @@ def main() -> int:
                       f"{t_eval:.0f} s for {len(rows)} cases x {len(methods)} methods; load average now "
                       f"{os.getloadavg()[0]:.2f}")
         print(timing[-1], flush=True)
-        print("  simulate: " + shlex.join(simulate_command(ct, data_dir, args.num_cases, args.seed, True)), flush=True)
+        print("  simulate: " + shlex.join(simulate_command(ct, data_dir, args.num_cases, args.seed, True,
+                                                            args.protocol, args.cbct)), flush=True)
 
     if not per_ct:
         out("no CT could be evaluated")
@@ -289,7 +315,8 @@ def main() -> int:
     out()
     for line in timing:
         out(f"- {line}")
-    example = simulate_command(cts[0], args.output_dir / ct_name(cts[0]), args.num_cases, args.seed, True)
+    example = simulate_command(cts[0], args.output_dir / data_name(cts[0], args.protocol, args.cbct), args.num_cases,
+                               args.seed, True, args.protocol, args.cbct)
     out(f"- simulate command (per CT; --output-dir and --phantom change): {shlex.join(example)}")
     out(f"- evaluation outputs (cases.csv, summary.json, report.md, report.html with overlays of failed or flagged "
         f"cases): {args.output_dir / 'eval'}/<name>")

@@ -49,7 +49,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         metavar="shepp-logan|shepp-logan-asym|random|PATH",
         help="built-in phantom or a CT (NIfTI file or DICOM directory, HU); default shepp-logan",
     )
-    p.add_argument("--protocol", default="paper", choices=("paper", "random"), help="motion protocol (default paper)")
+    # the names of simulation.protocols.PROTOCOLS, spelled out: importing the simulation package here would import
+    # torch for every --help (tests/test_simulation.py checks the two agree)
+    p.add_argument("--protocol", default="paper", choices=("paper", "random", "multi30"),
+                   help="motion protocol (default paper; multi30: |rx| = |ry| = |rz| = 30 degrees, 8 cases)")
     p.add_argument("--num-cases", type=int, default=None, metavar="N", help="number of cases (default: whole protocol)")
     p.add_argument("--preset", default="fast", choices=("paper", "fast"), help="grid/view preset (default fast)")
     p.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default 0)")
