@@ -90,25 +90,45 @@ def flag_reasons(summary: dict[str, Any], limits: Thresholds) -> list[str]:
     return reasons
 
 
-def register_series(registrar: Any, ct_dir: Path, cbct_dir: Path, output_dir: Path, cfg: ServeConfig,
-                    context: dict[str, Any]) -> dict[str, Any]:
-    """Register the CBCT series in ``cbct_dir`` to the planning CT series in ``ct_dir`` into ``output_dir`` (which
-    must not exist) and write ``registration.dcm`` and ``service.json`` (the service's record: series, CT choice,
-    flags, REG) into it.
+def series_reference(files: list[tuple[str, str, Path]], folder: Path) -> Any:
+    """The REG's reference to one received series: the patient, study and frame facts read from its first file by
+    the package (``dicom_reg.series_reference``), every instance from the service's index (``files``: SOP Class UID,
+    SOP Instance UID, file; reading every header again cost 0.4 s per registration)."""
+    import dataclasses
+
+    from monai_rigidreg.dicom_reg import InstanceReference
+    from monai_rigidreg.dicom_reg import series_reference as read_reference
+
+    first = read_reference(files[0][2])
+    instances = tuple(InstanceReference(sop_class or first.instances[0].sop_class_uid, sop_uid)
+                      for sop_class, sop_uid, _ in files)
+    return dataclasses.replace(first, instances=instances, source=folder)
+
+
+def register_series(registrar: Any, ct: tuple[Path, list], cbct: tuple[Path, list], output_dir: Path,
+                    cfg: ServeConfig, context: dict[str, Any]) -> dict[str, Any]:
+    """Register the CBCT series to the planning CT series into ``output_dir`` (which must not exist) and write
+    ``registration.dcm`` and ``service.json`` (the service's record: series, CT choice, flags, REG) into it.
+
+    Args:
+        ct, cbct: each ``(series folder, [(SOP Class UID, SOP Instance UID, file), ...])`` from the index.
 
     Returns:
-        ``{"summary": result.json, "flags": [...], "reg_path", "reg_sop_uid", "seconds"}``.
+        ``{"summary": result.json, "flags": [...], "reg_path", "reg_sop_uid", "seconds", "label"}``.
 
     Raises:
-        InputError: the series cannot be read or registered (the package's message).
+        InputError: the series cannot be read, registered or given a REG (the package's message).
     """
     from monai_rigidreg import __version__, register_files
     from monai_rigidreg.dicom_reg import write_spatial_registration
-    from monai_rigidreg.outputs import dicom_references
+    from monai_rigidreg.errors import InputError
 
     t0 = time.perf_counter()
-    refs, _ = dicom_references(ct_dir, cbct_dir, reg="on")  # refused before registering where no REG can be written
-    paths = register_files(registrar, ct_dir, cbct_dir, output_dir, qc=cfg.qc, reg="off")
+    refs = (series_reference(ct[1], ct[0]), series_reference(cbct[1], cbct[0]))
+    if refs[0].frame_of_reference_uid == refs[1].frame_of_reference_uid:  # refused before registering
+        raise InputError("the CT and the CBCT share one Frame of Reference UID: no registration between two frames "
+                         "can be stored")
+    paths = register_files(registrar, ct[0], cbct[0], output_dir, qc=cfg.qc, reg="off")
     summary = json.loads(paths["result.json"].read_text())
     flags = flag_reasons(summary, cfg.thresholds)
     if flags:
@@ -121,7 +141,8 @@ def register_series(registrar: Any, ct_dir: Path, cbct_dir: Path, output_dir: Pa
                                           description=description, software_version=__version__, series_number=900)
     import pydicom
 
-    reg_sop_uid = str(pydicom.dcmread(reg_path, stop_before_pixels=True).SOPInstanceUID)
+    reg_sop_uid = str(pydicom.dcmread(reg_path, stop_before_pixels=True, specific_tags=["SOPInstanceUID"])
+                      .SOPInstanceUID)
     seconds = time.perf_counter() - t0
     record = {**context, "flagged": bool(flags), "flag_reasons": flags, "content_label": label,
               "reg_sop_instance_uid": reg_sop_uid, "seconds": round(seconds, 3),

@@ -289,8 +289,11 @@ class Service:
         base = self.cfg.storage_dir / "results" / safe_name(row["patient_id"] or "", "no_patient_id") / safe_name(
             row["series_uid"])
         if row["done_at"] is None:
-            if base.exists():  # a registration a crash cut off: never sent, redone from scratch
-                shutil.rmtree(base)
+            # what a registration a crash cut off left (its folder, the hidden folder it was writing): never sent,
+            # redone from scratch
+            for left in [base, *base.parent.glob(f".{base.name}.*")] if base.parent.is_dir() else []:
+                if left.is_dir():
+                    shutil.rmtree(left)
             return base
         k = 2
         while base.with_name(f"{base.name}.{k}").exists():  # --repeat: the earlier results stay
@@ -310,8 +313,9 @@ class Service:
         context = {"cbct_series_uid": uid, "ct_series_uid": ct_uid, "patient_id": row["patient_id"],
                    "ct_choice": row["reason"], "service_version": __version__}
         try:
-            done = _pipeline.register_series(self.registrar, self.store.series_folder(ct_uid),
-                                             self.store.series_folder(uid), out, self.cfg, context)
+            done = _pipeline.register_series(
+                self.registrar, (self.store.series_folder(ct_uid), self.store.instance_files(ct_uid)),
+                (self.store.series_folder(uid), self.store.instance_files(uid)), out, self.cfg, context)
         except RigidRegError as exc:
             self.store.set_state(uid, st.FAILED, str(exc))
             self.event(logging.ERROR, f"registration of CBCT {uid} failed: {exc}; nothing sent", uid)
@@ -368,5 +372,5 @@ class Service:
         delay = backoff_s(attempts, self.cfg.send_retry_initial_s, self.cfg.send_retry_max_s)
         self.store.send_failed(send["id"], what, time.time() + delay)
         self.event(logging.WARNING, f"{label} {send['sop_uid']} of CBCT {send['series_uid']} not sent to {where}: "
-                                    f"{what}; retry in {delay:.0f} s (attempt {attempts}); kept in {send['path']}",
+                                    f"{what}; retry in {delay:.3g} s (attempt {attempts}); kept in {send['path']}",
                    send["series_uid"])

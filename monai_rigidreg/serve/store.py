@@ -59,7 +59,7 @@ CREATE TABLE IF NOT EXISTS series (
     first_at REAL, last_at REAL, role TEXT, state TEXT, reason TEXT, ct_series_uid TEXT, output_dir TEXT,
     aborted INTEGER DEFAULT 0, hold_until REAL, done_at REAL, attempts INTEGER DEFAULT 0, updated_at REAL);
 CREATE TABLE IF NOT EXISTS instances (
-    sop_uid TEXT PRIMARY KEY, series_uid TEXT, path TEXT, received_at REAL, calling_aet TEXT,
+    sop_uid TEXT PRIMARY KEY, series_uid TEXT, path TEXT, received_at REAL, calling_aet TEXT, sop_class TEXT,
     ipp TEXT, iop TEXT, rows INTEGER, cols INTEGER, spacing TEXT, images_in_acquisition INTEGER);
 CREATE INDEX IF NOT EXISTS instances_series ON instances(series_uid);
 CREATE TABLE IF NOT EXISTS sends (
@@ -120,6 +120,7 @@ def header_facts(ds: Any, marker_fields: tuple[str, ...] = _MARKER_DEFAULT) -> d
         images = None
     return {
         "sop_uid": _text(ds, "SOPInstanceUID"),
+        "sop_class": _text(ds, "SOPClassUID"),
         "series_uid": _text(ds, "SeriesInstanceUID"),
         "patient_id": _text(ds, "PatientID"),
         "issuer": _text(ds, "IssuerOfPatientID"),
@@ -169,6 +170,9 @@ class Store:
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=FULL")  # a commit is on disk before the C-STORE is acknowledged
         self._db.executescript(_SCHEMA)
+        for table, column in (("instances", "sop_class TEXT"), ("triggers", "role TEXT")):  # indexes of before 0.5
+            if column.split()[0] not in {r[1] for r in self._db.execute(f"PRAGMA table_info({table})")}:
+                self._db.execute(f"ALTER TABLE {table} ADD COLUMN {column}")
 
     def close(self) -> None:
         with self._lock:
@@ -223,9 +227,10 @@ class Store:
             duplicate = db.execute("SELECT 1 FROM instances WHERE sop_uid=?", (sop_uid,)).fetchone() is not None
             row = db.execute("SELECT state, calling_aets FROM series WHERE series_uid=?", (series_uid,)).fetchone()
             if not duplicate:
-                db.execute("INSERT INTO instances (sop_uid, series_uid, path, received_at, calling_aet, ipp, iop, "
-                           "rows, cols, spacing, images_in_acquisition) VALUES (?,?,?,?,?,?,?,?,?,?,?)",
-                           (sop_uid, series_uid, str(path.relative_to(self.root)), now, calling_aet, facts["ipp"],
+                db.execute("INSERT INTO instances (sop_uid, series_uid, path, received_at, calling_aet, sop_class, "
+                           "ipp, iop, rows, cols, spacing, images_in_acquisition) VALUES (?,?,?,?,?,?,?,?,?,?,?,?)",
+                           (sop_uid, series_uid, str(path.relative_to(self.root)), now, calling_aet,
+                            facts.get("sop_class", ""), facts["ipp"],
                             facts["iop"], facts["rows"], facts["cols"], facts["spacing"],
                             facts["images_in_acquisition"]))
             if row is None:
@@ -316,6 +321,22 @@ class Store:
                            cols=r["cols"], spacing=floats(r["spacing"]),
                            images_in_acquisition=r["images_in_acquisition"])
                 for r in self.query("SELECT * FROM instances WHERE series_uid=? ORDER BY sop_uid", (series_uid,))]
+
+    def instance_files(self, series_uid: str) -> list[tuple[str, str, Path]]:
+        """``(SOP Class UID, SOP Instance UID, file)`` of every instance of a series, in slice order (position along
+        the slice normal, where known)."""
+        rows = self.query("SELECT sop_class, sop_uid, path, ipp, iop FROM instances WHERE series_uid=?", (series_uid,))
+
+        def position(r: dict[str, Any]) -> float:
+            if not r["ipp"] or not r["iop"]:
+                return 0.0
+            ipp, iop = json.loads(r["ipp"]), json.loads(r["iop"])
+            normal = (iop[1] * iop[5] - iop[2] * iop[4], iop[2] * iop[3] - iop[0] * iop[5],
+                      iop[0] * iop[4] - iop[1] * iop[3])
+            return sum(a * b for a, b in zip(ipp, normal))
+
+        return [(r["sop_class"] or "", r["sop_uid"], self.root / r["path"])
+                for r in sorted(rows, key=lambda r: (position(r), r["sop_uid"]))]
 
     def set_state(self, series_uid: str, state: str, reason: str | None = None, **fields: Any) -> None:
         if state not in STATES:
