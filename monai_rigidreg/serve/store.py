@@ -405,6 +405,9 @@ class Store:
                        "VALUES (?,?,?,?,?)", (series_uid, ct_series_uid, int(repeat), role, time.time()))
 
     def take_triggers(self) -> list[dict[str, Any]]:
+        """The triggers waiting, oldest first, removed from the index (a read only, when there are none)."""
+        if not self.query("SELECT 1 AS x FROM triggers LIMIT 1"):
+            return []
         with self.transaction() as db:
             cur = db.execute("SELECT id, series_uid, ct_series_uid, repeat, role, requested_at FROM triggers "
                              "ORDER BY id")
