@@ -233,3 +233,30 @@ def test_status_and_trigger_without_a_service_say_why(tmp_path, capsys):
     assert "NOT RUNNING" in capsys.readouterr().out
     assert main(["serve", "trigger", "--config", str(path), "--series", "1.2.3"]) == 2
     assert "no series 1.2.3 received" in capsys.readouterr().err
+
+
+def test_one_service_per_storage_folder(tmp_path):
+    """A second service on the same storage folder is refused before it listens (it would register the same series
+    again); the first one's stop frees the folder."""
+    pytest.importorskip("pynetdicom", reason="pynetdicom (the 'serve' extra) is not installed")
+    from monai_rigidreg.serve.service import Service
+    from monai_rigidreg.serve.testing import free_port
+
+    cfg = config_from_dict({**MINIMAL, "storage_dir": str(tmp_path / "store"), "host": "127.0.0.1",
+                            "port": free_port()})
+    first = Service(cfg, registrar=object())  # a stand-in model: nothing is registered here
+    first.start()
+    try:
+        assert first.model_ready.wait(10)
+        second = Service(cfg, registrar=object())
+        with pytest.raises(InputError, match=f"another service is running on this storage_dir \\(pid {os.getpid()}"):
+            second.start()
+        second.store.close()
+    finally:
+        first.stop()
+    again = Service(cfg, registrar=object())
+    again.start()
+    again.stop()
+    store = Store(tmp_path / "store", readonly=True)
+    assert store.service_record()["model"] == "stopped" and any(e["text"] == "stopped" for e in store.events())
+    store.close()

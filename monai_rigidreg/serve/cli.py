@@ -103,8 +103,6 @@ def _serve(cfg: Any, args: argparse.Namespace) -> int:
         handler = logging.FileHandler(cfg.log_file, encoding="utf-8")
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
         root.addHandler(handler)
-    # pynetdicom logs every association and message at INFO (at DEBUG every PDU); the service logs what matters
-    logging.getLogger("pynetdicom").setLevel(logging.WARNING)
     service = Service(cfg)
     service.start()
     try:

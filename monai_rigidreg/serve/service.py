@@ -67,8 +67,19 @@ class Service:
     def start(self) -> None:
         """Resume from the index, start listening and the threads. Returns at once (the model loads in the
         worker; instances are received meanwhile)."""
+        self._lock_storage()
+        try:
+            self._start()
+        except BaseException:
+            self._unlock_storage()
+            raise
+
+    def _start(self) -> None:
         from pydicom import dcmread
 
+        pynetdicom_log = logging.getLogger("pynetdicom")
+        if pynetdicom_log.level == logging.NOTSET:  # it logs every association and message at INFO; the events here
+            pynetdicom_log.setLevel(logging.WARNING)  # say what matters, once
         touched = self.store.reconcile(lambda p: dcmread(str(p), stop_before_pixels=True))
         if touched:
             self.event(logging.WARNING, f"indexed instance files a previous run had stored but not indexed: series "
@@ -121,6 +132,29 @@ class Service:
         self._started = False
         if not alive:
             self.store.close()
+        self._unlock_storage()
+
+    def _lock_storage(self) -> None:
+        """One service per storage folder: a second would register the same series again."""
+        from monai_rigidreg.errors import InputError
+
+        self._lock_file = open(self.cfg.storage_dir / "service.lock", "a+")  # noqa: SIM115 - held while running
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not POSIX: no lock
+            return
+        try:
+            fcntl.flock(self._lock_file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self._lock_file.close()
+            pid = self.store.service_record().get("pid")
+            raise InputError(f"another service is running on this storage_dir (pid {pid}): one service per "
+                             "storage folder", self.cfg.storage_dir) from None
+
+    def _unlock_storage(self) -> None:
+        lock = getattr(self, "_lock_file", None)
+        if lock is not None and not lock.closed:
+            lock.close()  # releases the lock
 
     def trigger(self, series_uid: str, ct_series_uid: str | None = None, repeat: bool = False,
                 role: str | None = None) -> None:
