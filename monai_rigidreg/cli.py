@@ -43,6 +43,7 @@ COMMANDS = {
     "register": "monai_rigidreg.register_cli",
     "evaluate": "monai_rigidreg.evaluation.cli",
     "demo": "monai_rigidreg.demo",
+    "serve": "monai_rigidreg.serve.cli",
 }
 COMMAND_MODULES = tuple(COMMANDS.values())
 
