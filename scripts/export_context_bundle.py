@@ -47,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     train = json.loads((SHIPPED / "configs" / "train_context.json").read_text())
     regression = dict(train["network_def#regression"])
     regression["passes"] = list(args.passes)
+    regression.pop("train_autocast", None)  # a training setting (inference runs in float32)
     regression["context_factor"] = train["context_factor"]
     inference_path = args.output / "configs" / "inference.json"
     inference = json.loads(inference_path.read_text())

@@ -63,6 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=7000)
     parser.add_argument("--threads", type=int, default=max(1, (os.cpu_count() or 2) // 2))
     parser.add_argument("--shard", default="0/1", help="I/N: simulate every N-th case starting at I (parallel runs)")
+    parser.add_argument("--device", default="cpu", help="device of the projector and reconstruction (cpu, cuda)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     shard, shards = (int(v) for v in args.shard.split("/"))
@@ -81,7 +82,8 @@ def main(argv: list[str] | None = None) -> int:
         rng = np.random.default_rng(seed)
         group = CLINICAL_GROUPS["large" if rng.random() < args.large_share else "small"]
         t0 = time.perf_counter()
-        case = make_clinical_case(cts[name], group, seed, case_id=folder.name, spec=case_spec(rng), num_landmarks=20)
+        case = make_clinical_case(cts[name], group, seed, case_id=folder.name, spec=case_spec(rng), num_landmarks=20,
+                                  device=args.device)
         save_clinical_case(case, folder, fixed=ct_path)
         print(f"{folder.name}: {group.name}, isocentre {case.record['isocenter_distance_mm']:.0f} mm, "
               f"{time.perf_counter() - t0:.1f} s", flush=True)

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The long, resumable training run of the context correlation network (bundle 0.5 weights; see
 # bundles/cbct_ct_rigid/docs/README.md, "Training the next weights").
-#   usage: [DATA=data] [SHARED=../shared/data] [DEVICE=cpu|cuda] \
+#   usage: [DATA=data] [SHARED=../shared/data] [DEVICE=cpu|cuda] [BATCH=4] [EPOCH_LENGTH=100] [WORKERS=1] \
+#          [SAMPLER_DEVICE=cpu|cuda] [CASES=12] [SIM_DEVICE=cpu|cuda] \
 #          scripts/train_context_model.sh [RUN_DIR] [EPOCHS] [--resume]
 # First call: simulates the training data when it is missing (scripts/make_training_data.sh, about 8 minutes on
 # 2 cores; scripts/make_clinical_training_data.py, about 10 minutes), then trains from scratch. Resumed (3rd argument
@@ -19,6 +20,12 @@ RUN=${1:-training/context_run}
 EPOCHS=${2:-750}
 RESUME=${3:-}
 DEVICE=${DEVICE:-cpu}
+BATCH=${BATCH:-4}
+EPOCH_LENGTH=${EPOCH_LENGTH:-100}
+WORKERS=${WORKERS:-1}
+SAMPLER_DEVICE=${SAMPLER_DEVICE:-cpu}  # cuda: samples drawn on the GPU (then WORKERS=0)
+CASES=${CASES:-12}                     # clinical training pairs per CT
+SIM_DEVICE=${SIM_DEVICE:-cpu}
 TRAIN_CTS=(abdomen_pelvis_totalsegmentator_example_ct head_tcia_cptac_lscc_ct thorax_tcia_cptac_pda_ct
            abdomen_pelvis_tcia_tcga_ov_ct)
 cts=()
@@ -43,8 +50,8 @@ if [ ! -f "$DATA/train.json" ]; then
     scripts/make_training_data.sh "$DATA" "$SHARED"
 fi
 if [ ! -f "$DATA/clinical/dataset.json" ]; then
-    OMP_NUM_THREADS=1 python scripts/make_clinical_training_data.py --output-dir "$DATA/clinical" --cases 12 \
-        --threads 1 "${cts[@]}"
+    OMP_NUM_THREADS=1 python scripts/make_clinical_training_data.py --output-dir "$DATA/clinical" \
+        --cases "$CASES" --threads 1 --device "$SIM_DEVICE" "${cts[@]}"
 fi
 list() { local out="[" sep=""; for v in "$@"; do out+="$sep'$v'"; sep=","; done; echo "$out]"; }
 mkdir -p "$RUN"
@@ -53,5 +60,6 @@ python -m monai.bundle run \
     --bundle_root bundles/cbct_ct_rigid --output_dir "$RUN" --ckpt_dir "$RUN/models" \
     --train_datalists "$(list "$(realpath "$DATA/train.json")" "$(realpath "$DATA/clinical/dataset.json")")" \
     --train_cts "$(list "${cts[@]}")" --val_datalist "$DATA/val_paper/dataset.json" \
-    --epochs "$EPOCHS" --seed 0 --device "\$torch.device('$DEVICE')" \
+    --epochs "$EPOCHS" --seed 0 --device "\$torch.device('$DEVICE')" --batch_size "$BATCH" \
+    --epoch_length "$EPOCH_LENGTH" --num_workers "$WORKERS" --train#dataset#device "$SAMPLER_DEVICE" \
     --resume "$([ -n "$RESUME" ] && echo True || echo False)" 2>&1 | tee -a "$RUN/train_log.txt"

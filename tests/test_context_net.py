@@ -214,3 +214,18 @@ def test_training_mode_returns_match_records_for_the_criterion(small_net):
     assert {f"match{i}" for i in range(n)} <= set(crit.last_terms)
     assert small_net.coarse_project.weight.grad is not None
     small_net.eval()
+
+
+def test_training_autocast_leaves_inference_and_matching_in_float32():
+    torch.manual_seed(1)
+    kw = {"grid_size": (32, 32, 32), "grid_spacing": (4.0, 4.0, 4.0), "channels": (4, 8), "coarse_channels": (4, 8, 8),
+          "feat_channels": (8, 8, 4), "select_cells": 128}
+    plain = ContextCorrelationNet(**kw).eval()
+    mixed = ContextCorrelationNet(**kw, train_autocast="bfloat16").eval()
+    mixed.load_state_dict(plain.state_dict())
+    x = torch.rand(1, 1, 32, 32, 32)
+    with torch.no_grad():
+        torch.testing.assert_close(mixed.forward_levels(x, x.flip(3))[-1], plain.forward_levels(x, x.flip(3))[-1])
+    mixed.train()
+    _, records = mixed.forward_levels(x, x.flip(3), matches=True)
+    assert all(r["logits"].dtype == torch.float32 for r in records)

@@ -148,6 +148,10 @@ class ContextCorrelationNet(nn.Module):
         robust_iterations: Cauchy reweightings of each fit (``robust_sigma`` cells).
         robust_sigma: the Cauchy scale in cells of the level.
         select_cells: how many 4 mm cells are matched: those where both images have the most structure.
+        train_autocast: in training mode only, run the encoders' convolutions in this lower precision
+            (``"bfloat16"``: about 30 % less CPU time per step where oneDNN has bfloat16 kernels, measured with
+            one thread on the training machine); their features are cast back to float32 before any matching, so the
+            cost volumes, sub-cell readout and fits stay float32. Inference always runs in float32.
 
     Shapes:
         ``forward``: ``[B, 2 * C, x, y, z]`` (moving, fixed) or ``[B, 3 * C, ...]`` (moving, fixed, context: the
@@ -177,6 +181,7 @@ class ContextCorrelationNet(nn.Module):
         robust_iterations: int = 2,
         robust_sigma: float = 1.0,
         select_cells: int = 4096,
+        train_autocast: str | None = None,
     ) -> None:
         super().__init__()
         self.in_channels = int(in_channels)
@@ -195,6 +200,9 @@ class ContextCorrelationNet(nn.Module):
         self.robust_iterations = int(robust_iterations)
         self.robust_sigma = float(robust_sigma)
         self.select_cells = int(select_cells)
+        if train_autocast not in (None, "bfloat16", "float16"):
+            raise ValueError(f"train_autocast must be None, 'bfloat16' or 'float16', got {train_autocast!r}")
+        self.train_autocast = train_autocast
         c1, c2 = (int(c) for c in channels)
         self.encoder = _Encoder(self.in_channels, (c1, c2), (2, 2), num_res_units, norm)
         self.coarse_encoder = _Encoder(self.in_channels, coarse_channels, (2, 2, 1), num_res_units, norm)
@@ -233,6 +241,14 @@ class ContextCorrelationNet(nn.Module):
         context = image[:, 2 * c:] if image.shape[1] == 3 * c else None
         return image[:, :c], image[:, c:2 * c], context
 
+    def _encode(self, encoder: nn.Module, x: torch.Tensor) -> list[torch.Tensor]:
+        """``encoder(x)`` (in the training autocast precision where set), every output as float32."""
+        if self.training and self.train_autocast is not None:
+            with torch.autocast(x.device.type, dtype=getattr(torch, self.train_autocast)):
+                feats = encoder(x)
+            return [f.float() for f in feats]
+        return encoder(x)
+
     def _features4(self, feats: list[torch.Tensor]) -> torch.Tensor:
         top = F.interpolate(self.top4(feats[1]), size=feats[0].shape[2:], mode="trilinear", align_corners=False)
         return self.lateral4(feats[0]) + top
@@ -240,8 +256,8 @@ class ContextCorrelationNet(nn.Module):
     def _coarse(self, moving: torch.Tensor, context: torch.Tensor) -> tuple[torch.Tensor, dict[str, Any]]:
         b = moving.shape[0]
         pooled = F.avg_pool3d(moving, self.context_factor)
-        fm = self.coarse_encoder(pooled)[-1]
-        fc = self.coarse_encoder(context)[-1]
+        fm = self._encode(self.coarse_encoder, pooled)[-1]
+        fc = self._encode(self.coarse_encoder, context)[-1]
         pm = F.normalize(self.coarse_project(fm).flatten(2), dim=1)  # [B, C, Nm]
         pc = F.normalize(self.coarse_project(fc).flatten(2), dim=1)  # [B, C, Nc]
         logits = torch.bmm(pm.transpose(1, 2), pc) * self.log_temperature.exp()  # [B, Nm, Nc]
@@ -337,13 +353,13 @@ class ContextCorrelationNet(nn.Module):
         total, record = self._coarse(moving, context)
         levels = [matrix_to_params_torch(total).to(moving.dtype)]
         records = [record]
-        ff_feats = self.encoder(fixed)
+        ff_feats = self._encode(self.encoder, fixed)
         ff = {8: self.project8(ff_feats[1]), 4: self._features4(ff_feats)}
         for level, count in ((8, self.passes[0]), (4, self.passes[1])):
             for _ in range(count):
                 warped = warp_volume(moving, total.detach(), self.grid, self.grid)
-                correction, record = self._local(level, self.encoder(warped), ff[level], total, fixed_weight,
-                                                 fixed, warped)
+                correction, record = self._local(level, self._encode(self.encoder, warped), ff[level], total,
+                                                 fixed_weight, fixed, warped)
                 total = total @ correction
                 levels.append(matrix_to_params_torch(total).to(moving.dtype))
                 records.append(record)
