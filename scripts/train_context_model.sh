@@ -41,6 +41,26 @@ if [ -n "$RESUME" ]; then
     if ! ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev/null 2>&1; then
         echo "train_context_model: --resume: no checkpoint in $RUN/models to resume from" >&2; exit 2
     fi
+    # the checkpoint must hold this config's network (same parameter names and shapes)
+    python - "$RUN/models" <<'PY' || exit 2
+import re, sys
+from pathlib import Path
+import torch
+from monai.bundle import ConfigParser
+ckpts = sorted(Path(sys.argv[1]).glob("checkpoint_*epoch=*.pt"), key=lambda p: int(re.search(r"epoch=(\d+)", p.name)[1]))
+try:
+    state = torch.load(ckpts[-1], map_location="cpu", weights_only=True)["network"]
+except Exception as exc:  # unreadable, or not a training checkpoint
+    sys.exit(f"train_context_model: --resume: {ckpts[-1]} is not a readable training checkpoint ({exc})")
+parser = ConfigParser()
+parser.read_config(["bundles/cbct_ct_rigid/configs/train.json", "bundles/cbct_ct_rigid/configs/train_context.json"])
+want = {k: tuple(v.shape) for k, v in parser.get_parsed_content("network_def").state_dict().items()}
+have = {k: tuple(v.shape) for k, v in state.items()}
+if want != have:
+    diff = sorted(set(want) ^ set(have)) or sorted(k for k in want if want[k] != have[k])
+    sys.exit(f"train_context_model: --resume: {ckpts[-1]} holds another network than the config's "
+             f"(first differences: {', '.join(diff[:3])}): nothing was changed")
+PY
 elif [ -e "$RUN/history.json" ] || ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev/null 2>&1; then
     echo "train_context_model: $RUN holds an earlier run: continue it with --resume, or choose another folder" >&2
     exit 2
