@@ -8,16 +8,16 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from monai_rigidreg.geometry import Grid
+from monai_rigidreg.core.geometry import Grid
+from monai_rigidreg.core.network_grid import NetworkGridSpec
 from monai_rigidreg.losses import RigidRegistrationLoss
-from monai_rigidreg.network_grid import NetworkGridSpec
 from monai_rigidreg.networks import RigidTransformer
 
 __all__ = ["RegistrationCriterion", "canonical_grid"]
 
 
 def canonical_grid(size: Sequence[int], spacing: Sequence[float]) -> Grid:
-    """The network grid centred on the origin (:meth:`~monai_rigidreg.network_grid.NetworkGridSpec.canonical`).
+    """The network grid centred on the origin (:meth:`~monai_rigidreg.core.network_grid.NetworkGridSpec.canonical`).
 
     Every item's network grid is axis-aligned, of the same size and spacing, and centred on its fixed image
     centre, and the parameters are expressed about that centre; the voxel-space action of the parameters is
