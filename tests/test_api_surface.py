@@ -1,5 +1,6 @@
-"""The public API surface: nothing the 0.4.9 layout offered is lost, today's surface is frozen in a committed list,
-the bundle configs name only current paths, and the old module paths work (with a warning) as the same objects.
+"""The public API surface: nothing the 0.4.9 layout offered is lost (its ``__all__`` names and the names its bundle
+configs referenced, committed in ``tests/api_surface/``), today's surface is frozen in a committed list, the bundle
+configs name only current paths, and the old module paths work (with a warning) as the same objects.
 
 A change of the surface shows as a failure of :func:`test_the_surface_is_the_committed_list`: when it is meant,
 regenerate the list with ``python tests/test_api_surface.py > tests/api_surface/current.txt`` and review the diff.
@@ -73,17 +74,32 @@ def _config_references() -> set[str]:
     return refs
 
 
+def _resolve_reference(ref: str) -> object:
+    """A config's ``monai_rigidreg...`` reference: a module (``$import monai_rigidreg.x``) or a name in one."""
+    try:
+        return importlib.import_module(ref)
+    except ModuleNotFoundError:
+        module, name = ref.rsplit(".", 1)
+        return _resolve(module, name)
+
+
+def test_every_name_the_0_4_9_bundle_configs_referenced_still_resolves():
+    refs = [line for line in (SURFACE / "bundle_configs_0.4.9.txt").read_text(encoding="utf-8").splitlines()
+            if line.strip() and not line.startswith("#")]
+    assert "monai_rigidreg.batch.RegistrationEvaluator" in refs
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        for ref in refs:
+            _resolve_reference(ref)
+
+
 def test_every_name_the_bundle_configs_reference_resolves_without_a_deprecation():
     refs = _config_references()
     assert "monai_rigidreg.registration.RigidRegistrar" in refs and "monai_rigidreg.networks.TwoStageRigidNet" in refs
     with warnings.catch_warnings():
         warnings.simplefilter("error", DeprecationWarning)
         for ref in sorted(refs):
-            try:  # a module ("$import monai_rigidreg.registration") or a name in one
-                importlib.import_module(ref)
-            except ModuleNotFoundError:
-                module, name = ref.rsplit(".", 1)
-                _resolve(module, name)
+            _resolve_reference(ref)
 
 
 def test_an_old_module_path_is_the_new_module_with_a_deprecation_warning(monkeypatch):

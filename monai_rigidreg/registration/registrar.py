@@ -6,14 +6,19 @@ the same resampling and normalization as training), the network returns six para
 and the result is re-expressed about the fixed (CT) image centre, the project's convention (``docs/conventions.md``);
 its ``Euler3DTransform`` resamples the original, full-resolution CBCT onto the CT grid.
 
-Stages, one method each, sharing one :class:`~monai_rigidreg.registration.state.RegistrationState`:
+Stages, one method each, sharing one :class:`~monai_rigidreg.registration.state.RegistrationState`; the methods of
+stages 3-5 and 8 are defined with their concern (:class:`~monai_rigidreg.registration.search.StartChoice`,
+:class:`~monai_rigidreg.registration.network_run.NetworkRuns`,
+:class:`~monai_rigidreg.registration.confidence.ConfidenceStage`, which ``RigidRegistrar`` derives from), the others
+here:
 
 1. :meth:`RigidRegistrar._read` - the inputs (:mod:`.inputs`), the match region (:mod:`.match_region`) and the
    CBCT's field of view;
 2. :meth:`RigidRegistrar._exclude_couch` - the CT's body and its couch (:mod:`.body`);
 3. :meth:`RigidRegistrar._start_search` - the global search in a worker thread (:mod:`.search`);
 4. :meth:`RigidRegistrar._run_identity` - the network from the identity (:mod:`.network_run`);
-5. :meth:`RigidRegistrar._choose_start` - the network from the search's candidates, the best start kept;
+5. :meth:`RigidRegistrar._choose_start` - the network from the search's candidates, the best start kept
+   (:mod:`.search`);
 6. :meth:`RigidRegistrar._last_level` - the last Gauss-Newton level at native resolution (:mod:`.last_level`);
 7. :meth:`RigidRegistrar._refine` - the classical refinement, with ``refine`` (:mod:`.classical`);
 8. :meth:`RigidRegistrar._assess` - the confidence (:mod:`.confidence`, :mod:`.region_check`);
