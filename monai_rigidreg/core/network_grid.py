@@ -28,7 +28,6 @@ from typing import Any
 
 import SimpleITK as sitk
 
-from monai_rigidreg.bundle.loader import bundle_settings
 from monai_rigidreg.core.errors import InputError
 from monai_rigidreg.core.geometry import Grid
 
@@ -60,6 +59,10 @@ class NetworkGridSpec:
     @classmethod
     def from_bundle(cls, bundle: str | Path | None = None) -> NetworkGridSpec:
         """The spec declared by a bundle's ``inference.json`` (default: the shipped ``cbct_ct_rigid``)."""
+        # imported here: core/ reads no files and imports no other subpackage; the bundle's reader is asked when
+        # the sizes come from a bundle
+        from monai_rigidreg.bundle.loader import bundle_settings
+
         settings = bundle_settings(bundle)
         return cls(settings["network_size"], settings["network_spacing"])
 
