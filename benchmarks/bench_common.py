@@ -3,7 +3,10 @@ benchmark runs, and finding the real CTs of ``../shared/data`` (or a user's path
 
 from __future__ import annotations
 
+import argparse
+import datetime
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -23,6 +26,12 @@ class Tee:
     def __call__(self, text: str = "") -> None:
         print(text, flush=True)
         self.lines.append(text)
+
+    def write(self, path: Path | None) -> None:
+        """Every line printed so far into ``path`` (``--results``; nothing when ``None``), its folder made."""
+        if path is not None:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text("\n".join(self.lines) + "\n", encoding="utf-8")
 
 
 class LoadMonitor(threading.Thread):
@@ -57,7 +66,7 @@ def ct_name(path: Path) -> str:
 
 def find_cts(requested: list[str] | None, out: Tee, defaults: tuple[str, ...]) -> list[Path]:
     """The CTs to use (paths, or names of files in the data folder); absent ones are skipped with the reason."""
-    from monai_rigidreg.data import shared_data_dir
+    from monai_rigidreg.io.shared_data import shared_data_dir
 
     dirs = [d for d in (shared_data_dir(), REPO.parent / "shared" / "data", Path("../shared/data")) if d is not None]
     found = []
@@ -100,3 +109,58 @@ def median_time(fn: Callable[[], object], repeats: int, warm_up: bool = False) -
         fn()
         times.append(time.perf_counter() - t)
     return float(np.median(times))
+
+
+def start_run(out: Tee, module: str, threads: int, device: str, bundle: str) -> tuple[LoadMonitor, float]:
+    """The head of a result file (the command as run, the date, the machine, the bundle, the load at the start) and
+    the load monitor and start time of the run, for :func:`end_run`. ``module``: the script's ``__spec__.name``."""
+    import platform
+    import shlex
+
+    import SimpleITK as sitk
+    import torch
+
+    monitor = LoadMonitor()
+    monitor.start()
+    t_start = time.perf_counter()
+    for line in [
+        f"command: python -m {shlex.join([module, *sys.argv[1:]])}",
+        f"date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}",
+        f"machine: {platform.node()} {platform.machine()}, {os.cpu_count()} CPU cores; threads {threads}; "
+        f"torch {torch.__version__}, SimpleITK {sitk.Version.VersionString()}; device {device}",
+        f"bundle: {bundle}",
+        f"load average at start (1/5/15 min): {' '.join(f'{v:.2f}' for v in os.getloadavg())}",
+    ]:
+        out(line)
+    return monitor, t_start
+
+
+def end_run(out: Tee, monitor: LoadMonitor, t_start: float, results: Path | None, notes: list[str]) -> None:
+    """The tail of a result file (a "Run" section: ``notes``, the wall time, the load during the run and at its
+    end), and the file written to ``results`` when given."""
+    monitor.stop()
+    out("Run")
+    out()
+    for line in notes:
+        out(f"- {line}")
+    out(f"- total wall time {time.perf_counter() - t_start:.0f} s; 1-minute load average during the run: "
+        f"{monitor.describe()}; at the end (1/5/15 min): {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    out(f"- timings are indicative only: the {os.cpu_count()} cores may have been shared with other jobs "
+        "(see the load)")
+    out.write(results)
+    if results is not None:
+        print(f"written {results}")
+
+
+AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
+"""The six parameters' names (mm, degrees), as ``monai_rigidreg.PARAM_NAMES``."""
+
+
+def signed(values: object) -> str:
+    """``"tx +1.2 ty -0.3 ..."``: six parameters (mm, degrees) with their signs, for a case's error or motion."""
+    return " ".join(f"{a} {v:+.1f}" for a, v in zip(AXES, values))
+
+
+def script_parser(doc: str | None) -> argparse.ArgumentParser:
+    """A benchmark's argument parser, its module docstring (method, usage) as the ``--help`` text, as written."""
+    return argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)

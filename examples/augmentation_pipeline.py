@@ -34,7 +34,7 @@ import SimpleITK as sitk  # noqa: E402
 import torch  # noqa: E402
 from monai.transforms import Compose, CopyItemsd, EnsureTyped, LoadImaged  # noqa: E402
 
-from monai_rigidreg.geometry import Grid  # noqa: E402
+from monai_rigidreg.core.geometry import Grid  # noqa: E402
 from monai_rigidreg.transforms import RandCBCTDegradationd, RandRigid6DoFd, ResampleToNetworkGridd  # noqa: E402
 
 DEFAULT_IMAGE = "/work/shared/data/abdomen_pelvis_totalsegmentator_example_ct.nii.gz"

@@ -16,7 +16,7 @@ import traceback
 from collections.abc import Sequence
 
 from monai_rigidreg import __version__
-from monai_rigidreg.errors import RigidRegError, Terminated, sigterm_raises
+from monai_rigidreg.core.errors import RigidRegError, Terminated, sigterm_raises
 
 __all__ = ["main", "console", "build_parser", "log_level", "EXIT_CODES", "PROMPT_EXIT_COMMANDS"]
 
@@ -38,10 +38,10 @@ EXIT_CODES_HELP = ("exit status: " + "; ".join(f"{code} {text}" for code, text i
 
 # sub-command name -> its module, in the order they appear in --help
 COMMANDS = {
-    "simulate": "monai_rigidreg.simulation.cli",
-    "train": "monai_rigidreg.engine.cli",
-    "register": "monai_rigidreg.register_cli",
-    "evaluate": "monai_rigidreg.evaluation.cli",
+    "simulate": "monai_rigidreg.simulation.simulate_command",
+    "train": "monai_rigidreg.engine.train_command",
+    "register": "monai_rigidreg.registration.register_command",
+    "evaluate": "monai_rigidreg.evaluation.evaluate_command",
     "demo": "monai_rigidreg.demo",
     "serve": "monai_rigidreg.serve.cli",
 }
@@ -62,7 +62,7 @@ def build_parser(command: str | None = None, with_commands: bool = True) -> argp
 
     Importing a sub-command's module imports what it needs (the simulator pulls in MONAI's transforms, training
     ignite): ``monai-rigidreg register`` builds its own parser only, so it does not pay for the others' imports
-    (``python -X importtime -m monai_rigidreg.cli register --help``; ``benchmarks/bench_speed.py`` times the
+    (``python -X importtime -m monai_rigidreg.cli register --help``; ``benchmarks/speed/bench_speed.py`` times the
     command).
     """
     parser = argparse.ArgumentParser(
@@ -151,8 +151,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 PROMPT_EXIT_COMMANDS = frozenset({"register"})
 """Sub-commands after which the console script ends the process at once (``os._exit``) instead of tearing the
 interpreter down: once torch is loaded, the teardown (module and object finalisation) takes a few tenths of a
-second on a 2-core machine (``benchmarks/bench_speed.py``'s command rows with and without
-``MONAI_RIGIDREG_FULL_EXIT=1``: 2.90 s against 3.10 s in ``bench_speed_0.4.7_adaptive_threads_2026-12-03.txt``).
+second on a 2-core machine (``benchmarks/speed/bench_speed.py``'s command rows with and without
+``MONAI_RIGIDREG_FULL_EXIT=1``: 2.90 s against 3.10 s; ``docs/results.md``, "Speed").
 Everything a command writes is closed by then, its worker threads joined, and logging and the standard streams are
 flushed first. ``MONAI_RIGIDREG_FULL_EXIT=1`` (or a loaded ``coverage``) keeps the normal
 exit, for tools that act at interpreter exit."""

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from monai_rigidreg.errors import InputError
-from monai_rigidreg.geometry import PARAM_NAMES, parameter_errors, target_registration_error
+from monai_rigidreg.core.errors import InputError
+from monai_rigidreg.core.geometry import PARAM_NAMES, parameter_errors, target_registration_error
 
 __all__ = ["add_parser", "run", "run_demo", "DEMO_MOTION", "DEMO_SIMULATION"]
 
@@ -64,13 +64,13 @@ def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=D
     """
     # imported here: this module also defines the `demo` sub-command's parser, built for every `monai-rigidreg`
     # call, and the registration stack pulls in MONAI (seconds; see register_cli.run)
-    from monai_rigidreg.device import resolve_device
+    from monai_rigidreg.core.device import resolve_device
     from monai_rigidreg.evaluation.evaluate import body_points
-    from monai_rigidreg.io import load_volume
-    from monai_rigidreg.outputs import write_outputs
-    from monai_rigidreg.registration import RigidRegistrar
+    from monai_rigidreg.export.outputs import write_outputs
+    from monai_rigidreg.io.staging import staged_output_dir
+    from monai_rigidreg.io.volumes import load_volume
+    from monai_rigidreg.registration.registrar import RigidRegistrar
     from monai_rigidreg.simulation.pair import simulate_pair
-    from monai_rigidreg.staging import staged_output_dir
 
     resolve_device(device)  # a bad device string is refused before anything is simulated
     motion = tuple(float(v) for v in motion)

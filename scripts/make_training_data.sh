@@ -5,7 +5,7 @@
 # with the on-the-fly motion and give the motion away, so truncation is added after the motion, in the scanner
 # frame, by RandCBCTDegradationd. The *_interior sets (128 mm FOV, as in the paper) are simulated for evaluation
 # and excluded from train.json. Held out from training: the stock Shepp-Logan phantom, the thorax CT, the head CT
-# and the random-phantom seeds of benchmarks/bench_registration.py.
+# and the random-phantom seeds of benchmarks/accuracy/bench_registration.py.
 #   usage: scripts/make_training_data.sh [DATA_DIR] [SHARED_DATA_DIR]
 set -euo pipefail
 DATA=${1:-data}

@@ -26,7 +26,7 @@ monai-rigidreg -v train --datalist "$DATA/train.json" --val-datalist "$DATA/val_
     loss#loss#w_ssim=0.0 loss#loss#w_ncc=0.0 loss#loss#w_mi=0.0
 # What differs from the bundle's train.json: batch 4, learning rate LR (1e-3) halved every LR_STEP (30) epochs, 50 iterations per
 # epoch, and the image-similarity terms (SSIM, NCC, MI) off: the supervised point distance of the final estimate and
-# of the coarse level (w_levels) is the learning signal. benchmarks/bench_ablation.py measures what the composite
+# of the coarse level (w_levels) is the learning signal. benchmarks/ablation/bench_ablation.py measures what the composite
 # loss buys on held-out real CTs at an equal training budget. Everything else is train.json: CorrelationRigidNet
 # trained alone (fine_stage false, so validation measures the learned network alone), on-the-fly motion up to
 # +-30 mm / +-30 deg per axis (each axis with probability 0.8, composed with the base pair's own motion), the

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from pathlib import Path
 
@@ -10,8 +11,8 @@ import pytest
 import SimpleITK as sitk
 import torch
 
-from monai_rigidreg.data import shared_data_dir
-from monai_rigidreg.geometry import rotation_matrix
+from monai_rigidreg.core.geometry import rotation_matrix
+from monai_rigidreg.io.shared_data import shared_data_dir
 
 torch.set_num_threads(max(1, min(2, torch.get_num_threads())))
 
@@ -169,3 +170,55 @@ def one_torch_thread():
     yield
     torch.set_num_threads(old)
 
+
+# ---------------------------------------------------------------------------------------------------------------
+# The boundary tests' pair, small network and helpers (the command line, the output folders, the bundle's entry points)
+# ---------------------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="session")
+def pair(tmp_path_factory):
+    from monai_rigidreg.simulation import simulate_pair
+
+    return simulate_pair(tmp_path_factory.mktemp("pair"), phantom="shepp-logan-asym", params=[4, -3, 2, 2, -1, 3],
+                         seed=3, device="cpu", **{k: v for k, v in TINY_SIM.items() if k != "preset"})
+
+
+@pytest.fixture(scope="module")
+def small_registrar():
+    return small_registrar_for_tests(cascade_steps=1)
+
+
+@pytest.fixture
+def with_small_network(monkeypatch, small_registrar):
+    """The register command with the small network instead of the shipped bundle."""
+    from monai_rigidreg.registration import RigidRegistrar
+
+    monkeypatch.setattr(RigidRegistrar, "from_bundle", classmethod(lambda cls, *a, **k: small_registrar))
+
+
+def listing(root: Path) -> list[str]:
+    """Every path under ``root`` (hidden ones included), relative, sorted."""
+    return sorted(str(p.relative_to(root)) for p in Path(root).rglob("*"))
+
+
+def run_cli(capsys, args: list[str]) -> tuple[int, str]:
+    """``monai-rigidreg ARGS`` in this process: its exit status and what it wrote to stderr."""
+    from monai_rigidreg.cli import main
+
+    code = main([str(a) for a in args])
+    return code, capsys.readouterr().err
+
+
+def last_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    return lines[-1] if lines else ""
+
+
+def constant_like(image: sitk.Image, value: float = 0.0) -> sitk.Image:
+    out = sitk.Image(image.GetSize(), sitk.sitkFloat32)
+    out.CopyInformation(image)
+    return out + value
+
+
+def in_main_thread() -> None:
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signals reach the main thread only")

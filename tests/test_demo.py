@@ -7,15 +7,17 @@ gives (``monai-rigidreg demo``) runs with ``-m slow``.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from conftest import last_line, listing, run_cli
 
 from monai_rigidreg.cli import main
+from monai_rigidreg.core.errors import InputError, OutputExistsError
 from monai_rigidreg.demo import DEMO_MOTION, DEMO_SIMULATION, run_demo
-from monai_rigidreg.errors import OutputExistsError
-from monai_rigidreg.io import read_transform
+from monai_rigidreg.export.transform_files import read_transform
 
 FAST_DEMO = {"simct_views": 60, "cbct_views": 60}
 """The demo's grids and motion with 60 projections per scan instead of 180 (Sim-CT) / 120 (CBCT): about 2.5 s
@@ -79,3 +81,17 @@ def test_demo_refuses_a_motion_that_is_not_six_finite_numbers(tmp_path, capsys):
         assert main(["demo", "--output-dir", str(tmp_path / "d"), "--motion", *motion]) == 2
         assert "--motion needs six finite numbers" in capsys.readouterr().err
     assert not (tmp_path / "d").exists()
+
+
+def test_a_failed_demo_leaves_nothing(tmp_path, monkeypatch, capsys):
+    from monai_rigidreg.simulation import pair as pair_module
+
+    def simulated_then_failed(output_dir, **kwargs):
+        Path(output_dir).mkdir(parents=True)
+        (Path(output_dir) / "simct.nii.gz").write_bytes(b"half a volume")
+        raise InputError("the simulation failed")
+
+    monkeypatch.setattr(pair_module, "simulate_pair", simulated_then_failed)
+    code, err = run_cli(capsys, ["demo", "--output-dir", tmp_path / "new" / "demo", "--device", "cpu"])
+    assert (code, last_line(err)) == (2, "monai-rigidreg demo: error: the simulation failed")
+    assert listing(tmp_path) == []

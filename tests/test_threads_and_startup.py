@@ -10,8 +10,8 @@ import pytest
 import SimpleITK as sitk
 import torch
 
-from monai_rigidreg.device import set_cpu_threads
-from monai_rigidreg.errors import InputError
+from monai_rigidreg.core.device import set_cpu_threads
+from monai_rigidreg.core.errors import InputError
 
 
 def _python(code: str, **env: str | None) -> str:
@@ -127,7 +127,7 @@ def test_console_script_ends_register_promptly_with_complete_outputs_and_its_exi
 def test_busy_cores_sees_a_busy_loop_and_adaptive_threads_leaves_it_its_core():
     """A process computing all along (a busy loop) keeps a core busy: busy_cores counts it in every reading and
     adaptive_threads leaves it that core (at least one thread always); the reading ends when the loop does."""
-    from monai_rigidreg.device import adaptive_threads, busy_cores
+    from monai_rigidreg.core.device import adaptive_threads, busy_cores
 
     available = len(os.sched_getaffinity(0))
     loop = subprocess.Popen([sys.executable, "-c", "while True: pass"])
@@ -145,7 +145,7 @@ def test_busy_cores_sees_a_busy_loop_and_adaptive_threads_leaves_it_its_core():
 
 
 def test_adaptive_threads_without_a_reading_keeps_the_count(monkeypatch):
-    import monai_rigidreg.device as device
+    import monai_rigidreg.core.device as device
 
     monkeypatch.setattr(device, "_runnable_tasks", lambda: None)
     assert device.busy_cores() is None and device.adaptive_threads(3) == 3
@@ -165,14 +165,14 @@ def test_version_and_package_import_do_not_import_torch():
             "    try:\n        main(['--version'])\n    except SystemExit as e:\n        code = e.code\n"
             "print(out.getvalue().strip(), code, 'torch' in sys.modules, 'monai' in sys.modules)\n"
             "from monai_rigidreg import Grid, params_to_matrix\n"
-            "import monai_rigidreg.geometry as g\n"
+            "import monai_rigidreg.core.geometry as g\n"
             "print(Grid is g.Grid, params_to_matrix is g.params_to_matrix, 'torch' in sys.modules)")
     lines = _python(code).splitlines()
     assert lines[-2] == f"monai-rigidreg {monai_rigidreg.__version__} 0 False False"
     assert lines[-1] == "True True True"
-    # a submodule as an attribute after a plain import (a MONAI config's "$monai_rigidreg.geometry.PARAM_NAMES")
-    code = "import monai_rigidreg as m; print(m.geometry.PARAM_NAMES, m.geometry is __import__('sys').modules[" \
-           "'monai_rigidreg.geometry'])"
+    # a submodule as an attribute after a plain import (a MONAI config's "$monai_rigidreg.core.geometry.PARAM_NAMES")
+    code = ("import monai_rigidreg as m; print(m.core.geometry.PARAM_NAMES, m.core.geometry is "
+            "__import__('sys').modules['monai_rigidreg.core.geometry'])")
     assert _python(code) == "('tx', 'ty', 'tz', 'rx', 'ry', 'rz') True"
     assert len(monai_rigidreg.__all__) == len(set(monai_rigidreg.__all__))
     with pytest.raises(AttributeError, match="no attribute 'no_such_thing'"):

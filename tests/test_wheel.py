@@ -19,9 +19,10 @@ import sys
 import zipfile
 from pathlib import Path
 
-import numpy as np
 import pytest
 import SimpleITK as sitk
+
+from monai_rigidreg.simulation.toy import blob_ct
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIFT_X_MM = 4.0
@@ -77,20 +78,6 @@ def _build_wheel(src: Path, wheels: Path, cwd: Path) -> Path:
     return wheel
 
 
-def _blob_phantom(n: int = 48, spacing: float = 2.0) -> sitk.Image:
-    """A smooth CT-like test object in HU: an ellipsoidal soft-tissue body holding four distinct blobs."""
-    c = (n - 1) / 2.0
-    z, y, x = (a - c for a in np.mgrid[0:n, 0:n, 0:n].astype(np.float32))
-    arr = np.full((n, n, n), -1000.0, np.float32)
-    arr[(x / 20) ** 2 + (y / 16) ** 2 + (z / 18) ** 2 <= 1] = 0.0
-    for bx, by, bz, r, hu in [(-8, -4, 3, 5, 900), (7, 5, -6, 4, 500), (2, -9, -8, 3, -500), (-3, 8, 9, 4, 1200)]:
-        arr[(x - bx) ** 2 + (y - by) ** 2 + (z - bz) ** 2 <= r * r] = hu
-    img = sitk.GetImageFromArray(arr)
-    img.SetSpacing((spacing,) * 3)
-    img.SetOrigin((-c * spacing,) * 3)
-    return sitk.SmoothingRecursiveGaussian(img, 2.0)
-
-
 def test_wheel_installs_into_a_fresh_venv_and_registers(tmp_path):
     src = tmp_path / "src"
     src.mkdir()
@@ -129,7 +116,7 @@ def test_wheel_installs_into_a_fresh_venv_and_registers(tmp_path):
     # a tiny real registration through the installed console script: the moving image is the fixed one with its
     # content moved by +4 mm along x, so the transform (fixed points -> moving points, docs/conventions.md) has
     # tx = +4 mm and every other parameter 0
-    fixed = _blob_phantom()
+    fixed = blob_ct()
     moving = sitk.Resample(fixed, fixed, sitk.TranslationTransform(3, (-SHIFT_X_MM, 0.0, 0.0)), sitk.sitkLinear,
                            -1000.0)
     sitk.WriteImage(fixed, str(work / "A.nii.gz"))

@@ -8,16 +8,16 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from monai_rigidreg.geometry import Grid, params_to_matrix_torch
-from monai_rigidreg.losses import RigidRegistrationLoss
-from monai_rigidreg.network_grid import NetworkGridSpec
-from monai_rigidreg.networks import RigidTransformer, match_loss
+from monai_rigidreg.core.geometry import Grid, params_to_matrix_torch
+from monai_rigidreg.core.network_grid import NetworkGridSpec
+from monai_rigidreg.losses import RigidRegistrationLoss, match_loss
+from monai_rigidreg.networks import RigidTransformer
 
 __all__ = ["RegistrationCriterion", "canonical_grid"]
 
 
 def canonical_grid(size: Sequence[int], spacing: Sequence[float]) -> Grid:
-    """The network grid centred on the origin (:meth:`~monai_rigidreg.network_grid.NetworkGridSpec.canonical`).
+    """The network grid centred on the origin (:meth:`~monai_rigidreg.core.network_grid.NetworkGridSpec.canonical`).
 
     Every item's network grid is axis-aligned, of the same size and spacing, and centred on its fixed image
     centre, and the parameters are expressed about that centre; the voxel-space action of the parameters is
@@ -48,7 +48,7 @@ class RegistrationCriterion(nn.Module):
         w_levels: weight (per mm, shared) of the supervised point distance of each intermediate level estimate
             (``pred["levels"]``, from a regression with levels such as
             :class:`~monai_rigidreg.networks.CorrelationRigidNet`): deep supervision of its coarse level.
-        w_match: weight (per nat) of each level's match loss (:func:`~monai_rigidreg.networks.match_loss`: the
+        w_match: weight (per nat) of each level's match loss (:func:`~monai_rigidreg.losses.match_loss`: the
             cross-entropy of every cell's match against its true position), where ``pred["matches"]`` carries the
             levels' match records (:class:`~monai_rigidreg.networks.ContextCorrelationNet` in training).
 

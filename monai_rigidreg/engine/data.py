@@ -52,7 +52,7 @@ def registration_transforms(
 
     Steps: load (channel first, RAS ``MetaTensor``) -> resample ``moving``, ``fixed`` and ``moving_fov`` onto one
     network grid centred on the fixed image (the training placement,
-    :meth:`~monai_rigidreg.network_grid.NetworkGridSpec.on_fixed`; deterministic: ``CacheDataset`` caches up to
+    :meth:`~monai_rigidreg.core.network_grid.NetworkGridSpec.on_fixed`; deterministic: ``CacheDataset`` caches up to
     here) -> ``train`` only: random rigid motion of the moving CBCT (and its mask) composed with the recorded
     ground truth, and random CBCT degradation -> HU window to [0, 1]. In every mode the ground truth ends up under
     ``"rigid_params"`` (``{"params" [6], "matrix" [4, 4], "center" [3]}``).

@@ -14,7 +14,7 @@ from typing import Any
 from ignite.engine import Events
 from monai.handlers import CheckpointLoader, CheckpointSaver, TensorBoardStatsHandler
 
-from monai_rigidreg.geometry import PARAM_NAMES
+from monai_rigidreg.core.geometry import PARAM_NAMES
 
 __all__ = [
     "LossTermsHandler",

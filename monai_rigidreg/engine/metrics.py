@@ -9,7 +9,7 @@ import torch
 from monai.handlers import IgniteMetricHandler
 from monai.metrics import CumulativeIterationMetric
 
-from monai_rigidreg.geometry import PARAM_NAMES, Grid, grid_points, point_distances_torch, wrap_degrees
+from monai_rigidreg.core.geometry import PARAM_NAMES, Grid, grid_points, point_distances_torch, wrap_degrees
 
 __all__ = ["RigidErrorMetric", "RigidErrorHandler", "from_registration_output", "error_handlers"]
 

@@ -42,10 +42,10 @@ import SimpleITK as sitk
 import torch
 from torch.utils.data import IterableDataset, get_worker_info
 
-from monai_rigidreg.geometry import Grid, matrix_to_params, params_to_matrix
+from monai_rigidreg.core.geometry import Grid, matrix_to_params, params_to_matrix
+from monai_rigidreg.core.warp import warp_volume
 from monai_rigidreg.simulation.couch import Couch, couch_fractions
 from monai_rigidreg.transforms.cbct import RandCBCTDegradation
-from monai_rigidreg.warp import warp_volume
 
 __all__ = ["MotionRange", "PairSource", "RigidPairSampler", "load_sources", "sources_from_datalist",
            "sources_from_cts"]
@@ -154,7 +154,7 @@ class PairSource:
 
 
 def _body_mask(ct: sitk.Image) -> sitk.Image:
-    from monai_rigidreg.simulation.clinical import body_mask
+    from monai_rigidreg.simulation.clinical import planning_ct_body as body_mask
 
     return body_mask(ct)
 

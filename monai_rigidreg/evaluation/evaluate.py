@@ -19,12 +19,8 @@ import numpy as np
 import SimpleITK as sitk
 from tqdm.auto import tqdm
 
-from monai_rigidreg.classical import elastix_available, register_elastix, register_sitk
-from monai_rigidreg.errors import InputError
-from monai_rigidreg.evaluation.html_report import write_html_report
-from monai_rigidreg.evaluation.overlays import DEFAULT_MAX_OVERLAYS, OVERLAY_DIR, OverlayGallery
-from monai_rigidreg.evaluation.report import CaseResult, format_report, summarize, write_report
-from monai_rigidreg.geometry import (
+from monai_rigidreg.core.errors import InputError
+from monai_rigidreg.core.geometry import (
     Grid,
     grid_points,
     mask_points,
@@ -32,9 +28,13 @@ from monai_rigidreg.geometry import (
     recenter_params,
     target_registration_error,
 )
-from monai_rigidreg.io import check_output_dir, load_volume
-from monai_rigidreg.registration import RigidRegistrar
-from monai_rigidreg.staging import check_replaceable, staged_output_dir
+from monai_rigidreg.evaluation.html_report import write_html_report
+from monai_rigidreg.evaluation.overlays import DEFAULT_MAX_OVERLAYS, OVERLAY_DIR, OverlayGallery
+from monai_rigidreg.evaluation.report import CaseResult, format_report, summarize, write_report
+from monai_rigidreg.io.staging import check_replaceable, staged_output_dir
+from monai_rigidreg.io.volumes import check_output_dir, load_volume
+from monai_rigidreg.registration.classical import elastix_available, register_elastix, register_sitk
+from monai_rigidreg.registration.registrar import RigidRegistrar
 
 __all__ = ["METHODS", "evaluate_datalist", "load_datalist", "body_points", "LoadedCase", "iter_cases"]
 
@@ -208,7 +208,7 @@ def evaluate_datalist(
         max_overlays: overlays for cases that neither failed nor were flagged (those always get one).
         overwrite: replace an ``output_dir`` holding an earlier report (only one: a folder that also holds other
             files is refused). The report is written aside and moved into place at the end
-            (:func:`~monai_rigidreg.staging.staged_output_dir`): a failed or interrupted run leaves ``output_dir``
+            (:func:`~monai_rigidreg.io.staging.staged_output_dir`): a failed or interrupted run leaves ``output_dir``
             as it was.
 
     Returns:

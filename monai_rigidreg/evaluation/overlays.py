@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from monai_rigidreg.core.geometry import Grid, params_to_sitk
 from monai_rigidreg.evaluation.report import CaseResult
-from monai_rigidreg.geometry import Grid, params_to_sitk
-from monai_rigidreg.io import resample
-from monai_rigidreg.qc import orthogonal_slices
+from monai_rigidreg.export.qc_figure import orthogonal_slices
+from monai_rigidreg.io.volumes import resample
 
 __all__ = [
     "OverlayGallery",

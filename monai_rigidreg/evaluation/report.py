@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from monai_rigidreg.geometry import PARAM_NAMES, parameter_errors
-from monai_rigidreg.json_safe import json_safe
+from monai_rigidreg.core.geometry import PARAM_NAMES, parameter_errors
+from monai_rigidreg.core.json_safe import json_safe
 
 __all__ = ["CaseResult", "ReportTable", "motion_conditions", "summarize", "report_tables", "format_report",
            "write_report", "SUCCESS_TRE_MM"]

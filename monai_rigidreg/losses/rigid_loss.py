@@ -17,8 +17,8 @@ import torch
 from monai.losses import GlobalMutualInformationLoss, SSIMLoss
 from torch import nn
 
-from monai_rigidreg.geometry import Grid, grid_points, params_to_matrix_torch, point_distances_torch
-from monai_rigidreg.image_ops import broadcast_mask, gaussian_kernel_1d, masked_ncc, separable_filter
+from monai_rigidreg.core.geometry import Grid, grid_points, params_to_matrix_torch, point_distances_torch
+from monai_rigidreg.core.image_ops import broadcast_mask, gaussian_kernel_1d, masked_ncc, separable_filter
 
 __all__ = [
     "RigidRegistrationLoss",
@@ -185,7 +185,7 @@ def supervised_point_distance(
     weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Mean distance (mm) between points mapped by the predicted and by the true transform (a differentiable TRE,
-    :func:`~monai_rigidreg.geometry.point_distances_torch` averaged with optional weights).
+    :func:`~monai_rigidreg.core.geometry.point_distances_torch` averaged with optional weights).
 
     Args:
         params_pred, params_true: ``[B, 6]`` (mm, degrees) about ``center``.

@@ -4,7 +4,7 @@ rigid spatial transformer and cascades."""
 from __future__ import annotations
 
 from monai_rigidreg.networks.cascade import CascadeRegistration, cascade_register
-from monai_rigidreg.networks.context_net import ContextCorrelationNet, match_loss
+from monai_rigidreg.networks.context_net import ContextCorrelationNet
 from monai_rigidreg.networks.correlation_net import CorrelationRigidNet, local_cost_volume, weighted_rigid_fit
 from monai_rigidreg.networks.gauss_newton import GaussNewtonStage
 from monai_rigidreg.networks.rigid_net import FUSIONS, DualEncoderRigidNet
@@ -13,7 +13,6 @@ from monai_rigidreg.networks.two_stage import STAGE_KEYS, TwoStageRigidNet
 
 __all__ = [
     "ContextCorrelationNet",
-    "match_loss",
     "CorrelationRigidNet",
     "local_cost_volume",
     "weighted_rigid_fit",

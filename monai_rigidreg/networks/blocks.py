@@ -40,8 +40,8 @@ class OneDNNConv3d(nn.Conv3d):
 
     PyTorch 2.x runs such a convolution on its slow reference path instead of oneDNN (MKL-DNN): on 2 cores a
     kernel-3 convolution of ``[1, 16, 32, 32, 32]`` took 24 ms instead of 1.8 ms through ``torch.mkldnn_convolution``
-    (``benchmarks/bench_network_paths.py``, torch 2.13; a batch of 2 already goes to oneDNN). The registration runs
-    the network on one volume at a time, and the regression's fine passes re-encode the warped CBCT alone, so this
+    (``benchmarks/speed/bench_network_paths.py``, torch 2.13; a batch of 2 already goes to oneDNN). The registration
+    runs the network on one volume at a time, and the regression's fine passes re-encode the warped CBCT alone, so this
     was a quarter of a network run (one run 0.24 s instead of 0.32 s, the same script).
     Same weights, same ``state_dict``; the result agrees with ``nn.Conv3d``'s to float
     rounding (``tests/test_correlation_net.py``), and gradients flow through oneDNN's backward as well. Elsewhere

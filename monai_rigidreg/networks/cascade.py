@@ -7,8 +7,8 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
-from monai_rigidreg.geometry import Grid, matrix_to_params_torch, params_to_matrix_torch
-from monai_rigidreg.warp import warp_volume
+from monai_rigidreg.core.geometry import Grid, matrix_to_params_torch, params_to_matrix_torch
+from monai_rigidreg.core.warp import warp_volume
 
 __all__ = ["cascade_register", "CascadeRegistration"]
 
@@ -44,7 +44,7 @@ def cascade_register(
         fixed: ``[B, C, x, y, z]`` on ``grid``.
         grid: the network grid (both volumes are on it).
         steps: number of network applications K >= 1 (1 = plain single pass).
-        mode, padding_mode: interpolation of the intermediate warps (see :func:`monai_rigidreg.warp.warp_volume`).
+        mode, padding_mode: interpolation of the intermediate warps (see :func:`monai_rigidreg.core.warp.warp_volume`).
         return_all: also return the list of per-step total estimates (``[B, 6]`` each).
 
     Returns:

@@ -19,7 +19,7 @@ fine) and changes what limits it on real anatomy:
 
 Training supervises every level's estimate (point distance) and, through :meth:`ContextCorrelationNet.
 forward_levels` with ``matches=True``, every cell's match (cross-entropy against the true position, see
-:func:`match_loss`): thousands of supervised matches per sample instead of six numbers.
+:func:`~monai_rigidreg.losses.match_loss`): thousands of supervised matches per sample instead of six numbers.
 
 Frames and units as :class:`~monai_rigidreg.networks.CorrelationRigidNet`: the inputs share one axis-aligned network
 grid (array axes LPS x, y, z) centred on the CBCT; the context grid has the same centre; the output
@@ -41,12 +41,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from monai_rigidreg.geometry import Grid, matrix_to_params_torch
+from monai_rigidreg.core.geometry import Grid, matrix_to_params_torch
+from monai_rigidreg.core.warp import warp_volume
 from monai_rigidreg.networks.blocks import ResidualStage3d
 from monai_rigidreg.networks.correlation_net import local_cost_volume, weighted_rigid_fit
-from monai_rigidreg.warp import warp_volume
 
-__all__ = ["ContextCorrelationNet", "match_loss", "robust_rigid_fit", "context_from_fixed", "subcell_shifts"]
+__all__ = ["ContextCorrelationNet", "robust_rigid_fit", "context_from_fixed", "subcell_shifts", "sparse_cost_volume"]
 
 
 CONTENT_LEVEL = 0.1
@@ -337,7 +337,7 @@ class ContextCorrelationNet(nn.Module):
                 ``context_factor`` times the spacing); ``None``: :func:`context_from_fixed`.
             fixed_weight: optional ``[B, 1, *grid_size]`` weights in [0, 1] on the fixed grid (a match region, the
                 body without the couch): the local levels' cell weights are multiplied by their mean.
-            matches: also return each level's match record (for :func:`match_loss`).
+            matches: also return each level's match record (for :func:`~monai_rigidreg.losses.match_loss`).
 
         Returns:
             The list of estimates, or ``(estimates, records)`` with ``matches=True``.
@@ -386,8 +386,8 @@ def subcell_shifts(cost: torch.Tensor, radius: int) -> torch.Tensor:
     the argmax and its two inner neighbours (the parabola is extrapolated by up to half a cell), so that a match
     half a cell from the border is read as such, not snapped onto the border: with ``radius`` 1 a residual of half a
     cell would otherwise come out as a whole cell in every cell whose argmax falls on the border
-    (``tests/test_context_net.py``). Differentiable through the gathered costs; the argmax is taken in the cost's
-    own dtype.
+    (``tests/networks/test_context_net.py``). Differentiable through the gathered costs; the argmax is taken in the
+    cost's own dtype.
     """
     k = 2 * int(radius) + 1
     if k < 3:
@@ -441,80 +441,3 @@ def sparse_cost_volume(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, inde
     win = padded.gather(2, windows[:, None].expand(b, c, -1)).view(b, c, -1, k ** 3)
     sel = ff.flatten(2).gather(2, index[:, None].expand(b, c, -1))  # [B, C, N]
     return torch.einsum("bcn,bcnk->bnk", sel, win)
-
-
-def _trilinear_targets(pos: torch.Tensor, size: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Continuous lattice coordinates ``[B, N, 3]`` -> the 8 corner indices (row-major over ``size``) ``[B, N, 8]``
-    and their trilinear weights ``[B, N, 8]`` (0 for corners outside the lattice)."""
-    base = torch.floor(pos)
-    frac = pos - base
-    idx, wts = [], []
-    for corner in range(8):
-        off = torch.tensor([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1], dtype=pos.dtype, device=pos.device)
-        c = base + off
-        w = torch.where(off.bool(), frac, 1 - frac).prod(-1)
-        inside = torch.ones_like(w, dtype=torch.bool)
-        for a in range(3):
-            inside &= (c[..., a] >= 0) & (c[..., a] <= size[a] - 1)
-        flat = ((c[..., 0].clamp(0, size[0] - 1) * size[1] + c[..., 1].clamp(0, size[1] - 1)) * size[2]
-                + c[..., 2].clamp(0, size[2] - 1))
-        idx.append(flat.long())
-        wts.append(torch.where(inside, w, torch.zeros_like(w)))
-    return torch.stack(idx, -1), torch.stack(wts, -1)
-
-
-def match_loss(record: dict[str, Any], matrix_true: torch.Tensor, valid: torch.Tensor | None = None) -> torch.Tensor:
-    """Cross-entropy of one level's matches against the true positions (trilinear soft labels).
-
-    Args:
-        record: a match record of :meth:`ContextCorrelationNet.forward_levels` (``matches=True``).
-        matrix_true: ``[B, 4, 4]`` true fixed -> moving transforms about the grid centre (mm).
-        valid: optional ``[B, N]`` weights of the level's cells (default: the record's ``valid``, its cells with
-            anatomy in both images).
-
-    Global level: for every moving cell ``q`` the true CT position ``T^-1(q)`` on the context cell lattice; local
-    level: for every CT cell ``x`` the position in the warped CBCT, ``S^-1(T(x))`` with ``S`` the estimate the CBCT
-    was warped by, as a shift on the level's shift lattice. Cells whose truth lies outside the candidates, or whose
-    soft label is mostly outside, carry no loss. Returns the weighted mean over cells (a scalar).
-    """
-    logits = record["logits"]
-    m = matrix_true.to(torch.float64)
-    if record["kind"] == "global":
-        cells = record["cells"]  # moving cells [N, 3]
-        inv = torch.linalg.inv(m)
-        truth = cells @ inv[:, :3, :3].transpose(1, 2) + inv[:, None, :3, 3]  # [B, N, 3] CT positions
-        cand = record["candidates"]
-        lo = cand.min(0).values
-        step = _lattice_step(cand)
-        n_axis = [int(round(float(v))) + 1 for v in (cand.max(0).values - lo) / step]
-        pos = (truth - lo) / step
-    else:
-        cells = record["cells"]  # fixed cells [N, 3] or [B, N, 3]
-        start = record["start"].to(torch.float64)
-        rel = torch.linalg.inv(start) @ m  # x -> S^-1 T x
-        truth = cells @ rel[:, :3, :3].transpose(1, 2) + rel[:, None, :3, 3]
-        shifts = record["shifts"]  # [K^3, 3] mm
-        k = round(shifts.shape[0] ** (1 / 3))
-        n_axis = [k, k, k]
-        step = _lattice_step(shifts)
-        pos = (truth - cells - shifts.min(0).values) / step
-    idx, wts = _trilinear_targets(pos, n_axis)
-    coverage = wts.sum(-1)  # 1 inside, < 1 near the border, 0 outside
-    logp = torch.log_softmax(logits, dim=-1)
-    nll = -(logp.gather(-1, idx) * wts.to(logp.dtype)).sum(-1) / coverage.to(logp.dtype).clamp_min(1e-6)
-    w = (coverage > 0.5).to(nll.dtype)
-    if valid is None:
-        valid = record.get("valid")
-    if valid is not None:
-        w = w * valid.to(nll.dtype)
-    return (nll * w).sum() / w.sum().clamp_min(1.0)
-
-
-def _lattice_step(points: torch.Tensor) -> torch.Tensor:
-    """Per-axis spacing of a regular lattice of points ``[N, 3]`` (the smallest positive coordinate difference)."""
-    steps = []
-    for a in range(3):
-        u = torch.unique(points[:, a])
-        steps.append((u[1:] - u[:-1]).min() if u.numel() > 1 else torch.ones((), dtype=points.dtype,
-                                                                               device=points.device))
-    return torch.stack(steps)

@@ -22,7 +22,7 @@ the rigid fit are in mm.
 
 Frames and units: both inputs are on the same axis-aligned network grid (array axes = LPS x, y, z), the output
 ``(tx, ty, tz, rx, ry, rz)`` (mm, degrees) is the fixed -> moving transform ``T(x) = R (x - c) + c + t`` about the
-grid centre ``c`` (see :mod:`monai_rigidreg.geometry`), exactly as :class:`DualEncoderRigidNet`'s.
+grid centre ``c`` (see :mod:`monai_rigidreg.core.geometry`), exactly as :class:`DualEncoderRigidNet`'s.
 """
 
 from __future__ import annotations
@@ -33,9 +33,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from monai_rigidreg.geometry import Grid, matrix_to_params_torch
+from monai_rigidreg.core.geometry import Grid, matrix_to_params_torch
+from monai_rigidreg.core.warp import warp_volume
 from monai_rigidreg.networks.blocks import ResidualStage3d
-from monai_rigidreg.warp import warp_volume
 
 __all__ = ["CorrelationRigidNet", "local_cost_volume", "parabola_shifts", "weighted_rigid_fit", "SUBCELL_MODES"]
 
@@ -58,10 +58,10 @@ def local_cost_volume(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, radiu
     k = 2 * r + 1
     x, y, z = ff.shape[2:]
     padded = F.pad(fm, (r, r, r, r, r, r))
-    # an einsum over unfolded windows (25 calls). Tried and not kept (0.4.8): one product and channel sum per shift on
+    # an einsum over unfolded windows (25 calls). Tried and not kept: one product and channel sum per shift on
     # views, 125 x 2 small operations, faster only with libgomp's spinning threads; under the package's passive wait
     # policy, where every parallel operation wakes the worker threads, 0.024 s against the einsum's 0.015 s
-    # (benchmarks/bench_network_paths.py's cost-volume row)
+    # (benchmarks/speed/bench_network_paths.py's cost-volume row)
     costs = []
     for dx in range(k):
         for dy in range(k):

@@ -7,16 +7,16 @@ cannot reach sub-voxel accuracy cheaply (it has to learn the mm scale of every d
 Gauss-Newton step computes the displacement from image gradients, so the learned part only has to bring the start
 into the basin.
 
-Conventions are those of :mod:`monai_rigidreg.geometry`: ``T`` maps fixed points to moving points (LPS mm), the
+Conventions are those of :mod:`monai_rigidreg.core.geometry`: ``T`` maps fixed points to moving points (LPS mm), the
 estimate is a ``[B, 4, 4]`` matrix, parameters are ``(tx, ty, tz, rx, ry, rz)`` mm / degrees about the grid
 centre. The Jacobian combines the image gradient with the voxel displacement per parameter computed from
-:func:`~monai_rigidreg.geometry.params_to_matrix` and the grid's index-to-physical matrix, so no convention
-is derived a second time here (tests compare it with finite differences of :func:`~monai_rigidreg.warp.warp_volume`).
+:func:`~monai_rigidreg.core.geometry.params_to_matrix` and the grid's index-to-physical matrix, so no convention
+is derived a second time here (tests compare it with finite differences of
+:func:`~monai_rigidreg.core.warp.warp_volume`).
 """
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 
 import numpy as np
@@ -24,15 +24,19 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from monai_rigidreg.geometry import (
+from monai_rigidreg.core.geometry import (
     Grid,
-    grid_points,
     matrix_to_params_torch,
-    params_to_matrix,
     params_to_matrix_torch,
 )
-from monai_rigidreg.image_ops import erode, gradient_magnitude, local_mean, pyramid
-from monai_rigidreg.warp import _sample_normalized, normalized_points, warp_volume
+from monai_rigidreg.core.image_ops import erode, gradient_magnitude, local_mean, pyramid
+from monai_rigidreg.core.warp import normalized_points, sample_normalized, warp_volume
+from monai_rigidreg.networks.gauss_newton_terms import (
+    fixed_jacobian,
+    parameter_flow,
+    polynomial_basis,
+    voxel_indices,
+)
 
 __all__ = [
     "GaussNewtonStage",
@@ -46,96 +50,6 @@ __all__ = [
 
 JACOBIANS: tuple[str, ...] = ("fixed", "moving", "symmetric")
 """Where the Gauss-Newton steps take their image gradients from (see :func:`gauss_newton_align`)."""
-
-
-def parameter_flow(grid: Grid, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
-                   ) -> torch.Tensor:
-    """Physical displacement of every voxel centre per unit parameter at the identity: ``[6, 3, x, y, z]``.
-
-    ``d W_p(x) / dp_k`` (mm per mm, mm per degree) for ``W_p`` of :func:`~monai_rigidreg.geometry.params_to_matrix`
-    about ``grid.center()``, by central differences of that function (:func:`_parameter_derivative`; exact for
-    translations, rotations to O(h^2) with h = 1e-3 degrees). The fine stage does not build it
-    (:func:`fixed_jacobian` uses its affine coefficients); it is the reference the tests check them against.
-    """
-    deriv = torch.as_tensor(_parameter_derivative(grid), dtype=torch.float64, device=device)  # [6, 3, 4]
-    # LPS mm of every voxel centre, in the xyz (index-major) order of the volume
-    pts = torch.as_tensor(grid_points(grid, 1).T, dtype=torch.float64, device=device)  # [3, N]
-    flow = deriv[:, :, :3] @ pts + deriv[:, :, 3:]  # [6, 3, N]
-    return flow.reshape(6, 3, *grid.size).to(dtype)
-
-
-def _parameter_derivative(grid: Grid) -> np.ndarray:
-    """``d W_p / dp_k`` at ``p = 0`` as an affine map of physical points: ``[6, 3, 4]`` (``[:, :, :3]`` linear part,
-    ``[:, :, 3]`` offset), from central differences of :func:`~monai_rigidreg.geometry.params_to_matrix` about
-    ``grid.center()``. numpy, not torch: under ``torch.jit.trace`` a cached result (:func:`_flow_coefficients`) must
-    not have recorded traced operations (the cache would make a second trace differ from the first)."""
-    h = 1e-3
-    center = grid.center()
-    mats = np.stack([params_to_matrix(sign * h * row, center) for sign in (1.0, -1.0) for row in np.eye(6)])
-    return (mats[:6] - mats[6:])[:, :3, :] / (2 * h)
-
-
-def fixed_jacobian(fixed: torch.Tensor, grid: Grid, index: torch.Tensor | None = None,
-                   points: torch.Tensor | None = None) -> torch.Tensor:
-    """``d fixed(W_p(x)) / dp`` at ``p = 0``: ``[B, 6, C, x, y, z]`` (per mm and per degree); with ``index`` (``[K]``
-    flat voxel indices of the grid) at those voxels only: ``[B, 6, C, K]`` (the gradients are taken over the whole
-    grid, the rest is formed at the ``K`` voxels; ``points``: their voxel indices ``[K, 3]``, if at hand).
-
-    Chain rule: the physical image gradient (central differences along the array axes, mapped through the
-    grid's index-to-physical matrix) times :func:`parameter_flow`. ``fixed`` is in MONAI ``xyz`` layout on ``grid``.
-
-    The flow is affine in the voxel index, ``flow_k(u) = K_k u + b_k`` with ``u`` the index about the grid centre, so
-    ``J_k = sum_i (K_k^T A^-1 g)_i u_i + (b_k^T A^-1 g)`` is formed from the three index gradients ``g`` and three
-    broadcast index ramps, never the ``[6, 3, N]`` flow itself (:func:`_flow_coefficients`; on the last level's
-    ~1M-voxel grid, which changes with every case: 0.06 s instead of 0.23 s through the flow,
-    ``benchmarks/bench_network_paths.py``).
-    """
-    if tuple(fixed.shape[2:]) != tuple(grid.size):
-        raise ValueError(f"fixed spatial shape {tuple(fixed.shape[2:])} does not match its grid {grid.size}")
-    g_idx = torch.gradient(fixed, dim=(2, 3, 4))  # 3 x [B, C, x, y, z] per index step
-    slope, offset = _flow_coefficients(grid)  # [6, 3 (index axis), 3 (gradient axis)], [6, 3 (gradient axis)]
-    if index is None:
-        ramps = [(torch.arange(n, dtype=fixed.dtype, device=fixed.device) - (n - 1) / 2.0).view(
-            [n if a == i else 1 for a in range(3)]) for i, n in enumerate(grid.size)]
-    else:
-        g_idx = [g.flatten(2)[:, :, index] for g in g_idx]  # 3 x [B, C, K]
-        at = voxel_indices(index, grid.size) if points is None else points.unbind(1)
-        ramps = [u.to(fixed.dtype) - (n - 1) / 2.0 for u, n in zip(at, grid.size)]
-
-    def combine(coefs: np.ndarray) -> torch.Tensor | None:
-        terms = [float(c) * g for c, g in zip(coefs, g_idx) if c != 0.0]
-        return sum(terms[1:], terms[0]) if terms else None
-
-    out = []
-    for k in range(6):
-        jac = combine(offset[k])
-        for i in range(3):
-            part = combine(slope[k, i])
-            if part is not None:
-                jac = part * ramps[i] if jac is None else jac + part * ramps[i]
-        out.append(torch.zeros_like(g_idx[0]) if jac is None else jac)
-    return torch.stack(out, 1)
-
-
-@functools.lru_cache(maxsize=64)
-def _flow_coefficients(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
-    """The coefficients of :func:`fixed_jacobian` for ``grid``: ``slope[k, i, m]`` and ``offset[k, m]`` such that
-    ``J_k = sum_m (sum_i slope[k, i, m] u_i + offset[k, m]) dI/du_m`` with ``u`` the voxel index about the grid
-    centre and ``dI/du_m`` the image gradient per index step along array axis ``m``.
-
-    From the derivative :func:`parameter_flow` is built from (:func:`_parameter_derivative`):
-    ``flow_k(p) = D_k (p - c) + d_k`` (physical, mm), ``p - c = A u`` with ``A`` the grid's direction times spacing,
-    and the physical gradient ``A^-T dI/du``."""
-    center = grid.center()
-    deriv = _parameter_derivative(grid)  # [6, 3, 4]
-    lin = deriv[:, :, :3]  # D_k
-    const = lin @ center + deriv[:, :, 3]  # d_k = flow at the centre
-    a = grid.index_to_physical()[:3, :3]
-    a_inv = np.linalg.inv(a)
-    # flow . A^-T g = (A^-1 flow) . g: per index axis i the coefficients of g of the term in u_i
-    slope = np.einsum("mp,kpq,qi->kim", a_inv, lin, a)  # [6, i, m]
-    offset = np.einsum("mp,kp->km", a_inv, const)  # [6, m]
-    return slope, offset
 
 
 def gauss_newton_align(
@@ -191,7 +105,7 @@ def gauss_newton_align(
             ``"moving"`` (the warped moving features at every step, forward compositional) or ``"symmetric"``
             (their mean, as in efficient second-order minimisation). With images of equal appearance all three
             converge to the same pose; where the CBCT's features differ from the CT's, their fixed points differ
-            (``benchmarks/bench_gauss_newton_variants.py``).
+            (``benchmarks/ablation/bench_gauss_newton_variants.py``).
         tolerance: ``(mm, degrees)``: stop before ``iterations`` once the step of every case is below both (its
             largest translation and rotation component); ``None``: always ``iterations`` steps (training keeps the
             number of steps fixed).
@@ -204,11 +118,11 @@ def gauss_newton_align(
         candidates: optional ``[1, 1, x, y, z]`` boolean mask (one case, ``jacobian="fixed"``) holding every voxel
             that can carry weight while the estimate moves every point of the grid less than ``reach_mm`` from
             where ``init`` puts it: where ``weight`` is positive and the warped ``moving_support`` can cover
-            (:func:`~monai_rigidreg.precision.support_reach`). The steps are computed over these voxels only
-            (:func:`~monai_rigidreg.warp.warp_points`), the same sums as over the whole grid, the other voxels'
-            weights being zero; once the estimate has moved a corner of the grid ``reach_mm`` or more from
+            (:func:`~monai_rigidreg.registration.last_level.support_reach`). The steps are computed over these voxels
+            only (:func:`~monai_rigidreg.core.warp.warp_points`), the same sums as over the whole grid, the other
+            voxels' weights being zero; once the estimate has moved a corner of the grid ``reach_mm`` or more from
             ``init``'s, the remaining steps use the whole grid. The last level's grid covers the CBCT's box, about
-            a third of it outside its cylindrical field of view (``benchmarks/bench_network_paths.py``).
+            a third of it outside its cylindrical field of view (``benchmarks/speed/bench_network_paths.py``).
         reach_mm: see ``candidates``.
 
     Returns:
@@ -241,7 +155,7 @@ def gauss_newton_align(
             subset = None
             jac_fixed = fixed_jacobian(fixed.detach(), grid).flatten(2)
         if subset is not None:
-            both = _sample_normalized(stacked, total, subset.normalized, grid, grid)  # [1, C + 1, K]
+            both = sample_normalized(stacked, total, subset.normalized, grid, grid)  # [1, C + 1, K]
             warped, cover = both[:, :n_ch], both[:, n_ch:]
             w = (cover > 0.999).to(moving.dtype)
             if subset.weight is not None:
@@ -320,14 +234,6 @@ def _dense_step(stacked: torch.Tensor, total: torch.Tensor, grid: Grid, fixed: t
     return _solve_step(jf, w, r, basis, n_ch, n_vox, damping), w
 
 
-def voxel_indices(index: torch.Tensor, size: Sequence[int]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Flat indices ``[K]`` of a ``size`` ``(x, y, z)`` volume (row-major, the last axis fastest) -> the three voxel
-    index tensors ``(i, j, k)``. Written out rather than ``torch.unravel_index``, whose first call imports sympy
-    (0.35 s of a command-line registration, measured with cProfile)."""
-    ny, nz = int(size[1]), int(size[2])
-    return index // (ny * nz), (index // nz) % ny, index % nz
-
-
 class _Subset:
     """The candidate voxels of :func:`gauss_newton_align` (one case) and what a step needs at them: ``index`` ``[K]``
     flat voxel indices, ``normalized`` ``[K, 3]`` their sampling coordinates, ``fixed`` ``[1, C, K]``, ``jacobian``
@@ -392,30 +298,6 @@ def _with_bias_terms(h: torch.Tensor, g: torch.Tensor, wj: torch.Tensor, w: torc
     return big_h, big_g
 
 
-def polynomial_basis(grid: Grid, degree: int, dtype: torch.dtype = torch.float32,
-                     device: torch.device | str | None = None) -> torch.Tensor:
-    """Monomials of total degree <= ``degree`` in the grid's index coordinates scaled to [-1, 1]: ``[k, x, y, z]``.
-
-    Degree 0: the constant (k = 1); 1: plus x, y, z (k = 4); 2: plus the six quadratic terms (k = 10); and so on.
-    Smooth intensity fields such as CBCT cupping and scatter shading are close to this span over a network grid.
-    Cached like :func:`parameter_flow` (shared tensor: do not modify it in place).
-    """
-    dev = str(torch.device(device) if device is not None else torch.device("cpu"))
-    if torch.jit.is_tracing():
-        return _polynomial_basis.__wrapped__(tuple(grid.size), int(degree), dtype, dev)
-    return _polynomial_basis(tuple(grid.size), int(degree), dtype, dev)
-
-
-@functools.lru_cache(maxsize=8)
-def _polynomial_basis(size: tuple[int, ...], degree: int, dtype: torch.dtype, device: str) -> torch.Tensor:
-    axes = [torch.linspace(-1.0, 1.0, n, dtype=torch.float64, device=device) if n > 1
-            else torch.zeros(1, dtype=torch.float64, device=device) for n in size]
-    x, y, z = torch.meshgrid(*axes, indexing="ij")
-    terms = [x**i * y**j * z**m for total in range(degree + 1) for i in range(total, -1, -1)
-             for j in range(total - i, -1, -1) for m in [total - i - j]]
-    return torch.stack(terms).to(dtype)
-
-
 def alignment_features(
     volume: torch.Tensor,
     spacing: Sequence[float],
@@ -432,7 +314,7 @@ def alignment_features(
     step; off by default: it did not add accuracy on top of the local contrast); a weight of 0 drops that channel.
 
     Why: aligning raw intensities pulls the estimate towards matching the CBCT's low-frequency errors (scatter
-    cupping, beam hardening) with the CT. ``benchmarks/bench_alignment_features.py`` measures the choice on a
+    cupping, beam hardening) with the CT. ``benchmarks/ablation/bench_alignment_features.py`` measures the choice on a
     paper-protocol set (64^3 grid at 2 mm): on the bundle's validation cases the mean TRE drops from about 2.6 mm
     with intensities alone to about 0.6 mm with the local-contrast channel at the defaults (0.4 mm with the
     network's 8 mm support erosion).
@@ -471,7 +353,7 @@ class GaussNewtonStage(nn.Module):
     epochs, the regression saturating at its tanh bounds), so the regression learns from its own supervised term.
     Fixed rather than learned features: learned channels trained through the (detached-Jacobian) steps degraded
     the validation TRE from 2.6 mm to 15 mm within one CPU epoch, while these reach about 0.4 mm
-    (``benchmarks/bench_alignment_features.py``).
+    (``benchmarks/ablation/bench_alignment_features.py``).
 
     Args:
         grid_spacing: network-grid spacing in mm (the bundle's ``network_spacing``; the steps work in physical
@@ -487,14 +369,14 @@ class GaussNewtonStage(nn.Module):
         bias_degree: degree of the smooth intensity bias per feature channel estimated jointly with the pose and
             discarded (-1: none; see :func:`gauss_newton_align`). Used from the second level on: on the coarsest
             level, where large motions are captured, a smooth field can stand in for a shift of broad structures
-            (``benchmarks/bench_capture_range.py`` with the terms on every level captured fewer large motions).
+            (``benchmarks/accuracy/bench_capture_range.py`` with the terms on every level captured fewer large motions).
         jacobian: ``"fixed"`` (inverse compositional, the default), ``"moving"`` or ``"symmetric"``; one for all
             levels or one per level.
         robust_scale: optional Geman-McClure scale of the residuals (None: plain least squares).
         support_threshold: normalized intensity above which a moving voxel counts as data.
         tolerance: ``(mm, degrees)``: at inference (gradients off) a level stops once its steps fall below both
             (:func:`gauss_newton_align`); with gradients on, every level takes its ``iterations`` steps. ``None``:
-            always all steps. The bundle uses ``(0.01, 0.01)`` (``benchmarks/bench_speed.py`` measures the time
+            always all steps. The bundle uses ``(0.01, 0.01)`` (``benchmarks/speed/bench_speed.py`` measures the time
             saved and the change of the estimates).
         secant: at inference (gradients off), secant-scaled steps (:func:`gauss_newton_align`); training keeps
             plain steps.

@@ -6,7 +6,7 @@ This is the learned stage alone; :class:`~monai_rigidreg.networks.TwoStageRigidN
 The network sees only the two volumes resampled onto one *network grid* (axis-aligned, in the fixed frame) and
 knows nothing else about physical space. Its outputs ``(tx, ty, tz, rx, ry, rz)`` are physical millimetres and
 degrees of the transform ``T(x) = R (x - c) + c + t`` that maps fixed points to moving points, ``c`` the centre of
-the network grid (see :mod:`monai_rigidreg.geometry`). The mm scale is learned for the grid spacing it is trained
+the network grid (see :mod:`monai_rigidreg.core.geometry`). The mm scale is learned for the grid spacing it is trained
 at: a checkpoint is tied to that spacing (keep it in the bundle config).
 """
 
@@ -89,10 +89,10 @@ class DualEncoderRigidNet(nn.Module):
         * ``"correlation"``: cosine-similarity cost volume between all ``pool_size``^3 moving and fixed cells
           (``pool_size**6`` features).
         * ``"gap"``: global average pooling of each map (discards position; kept as an ablation baseline).
-        ``benchmarks/bench_network.py --ablation`` measures them on a synthetic task.
+        ``benchmarks/speed/bench_network.py --ablation`` measures them on a synthetic task.
 
     Units and frame: outputs are physical mm / degrees of the fixed->moving transform about the centre of the
-    network grid (see :mod:`monai_rigidreg.geometry`); turn them into a matrix with
+    network grid (see :mod:`monai_rigidreg.core.geometry`); turn them into a matrix with
     ``params_to_matrix_torch(params, grid.center())``. The network itself knows nothing of physical space; the mm
     scale it learns is specific to the network-grid spacing it is trained at.
 

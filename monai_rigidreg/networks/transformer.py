@@ -8,8 +8,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from monai_rigidreg.geometry import Grid, params_to_matrix_torch
-from monai_rigidreg.warp import warp_volume
+from monai_rigidreg.core.geometry import Grid, params_to_matrix_torch
+from monai_rigidreg.core.warp import warp_volume
 
 __all__ = ["RigidTransformer"]
 
@@ -17,8 +17,8 @@ __all__ = ["RigidTransformer"]
 class RigidTransformer(nn.Module):
     """Warp a moving volume onto the fixed grid under ``(tx, ty, tz, rx, ry, rz)`` (the STN of the paper).
 
-    A thin :class:`torch.nn.Module` around :func:`monai_rigidreg.geometry.params_to_matrix_torch` and
-    :func:`monai_rigidreg.warp.warp_volume` (no second derivation of the conventions): the output is the torch twin
+    A thin :class:`torch.nn.Module` around :func:`monai_rigidreg.core.geometry.params_to_matrix_torch` and
+    :func:`monai_rigidreg.core.warp.warp_volume` (no second derivation of the conventions): the output is the torch twin
     of ``SimpleITK.Resample(moving, fixed, params_to_sitk(params, center))``, i.e. ``out(x) = moving(T(x))`` with
     ``T(x) = R (x - c) + c + t`` mapping fixed points to moving points (LPS mm). So ``tx = +s`` mm gives
     ``out(x) = moving(x + s e_x)``: the content moves by ``-s`` along LPS x.

@@ -36,7 +36,7 @@ def load_registrar(cfg: ServeConfig) -> Any:
     """The shipped (or ``registration.bundle``) network in a registrar, on ``registration.device``, with
     ``registration.threads`` CPU threads (default: adapted per registration to the cores other work leaves)."""
     import monai_rigidreg
-    from monai_rigidreg.device import set_cpu_threads
+    from monai_rigidreg.core.device import set_cpu_threads
 
     set_cpu_threads(cfg.threads)
     registrar = monai_rigidreg.RigidRegistrar.from_bundle(cfg.bundle, device=cfg.device)
@@ -96,8 +96,8 @@ def series_reference(files: list[tuple[str, str, Path]], folder: Path) -> Any:
     SOP Instance UID, file; reading every header again cost 0.4 s per registration)."""
     import dataclasses
 
-    from monai_rigidreg.dicom_reg import InstanceReference
-    from monai_rigidreg.dicom_reg import series_reference as read_reference
+    from monai_rigidreg.export.dicom_reg import InstanceReference
+    from monai_rigidreg.export.dicom_reg import series_reference as read_reference
 
     first = read_reference(files[0][2])
     instances = tuple(InstanceReference(sop_class or first.instances[0].sop_class_uid, sop_uid)
@@ -120,8 +120,8 @@ def register_series(registrar: Any, ct: tuple[Path, list], cbct: tuple[Path, lis
         InputError: the series cannot be read, registered or given a REG (the package's message).
     """
     from monai_rigidreg import __version__, register_files
-    from monai_rigidreg.dicom_reg import write_spatial_registration
-    from monai_rigidreg.errors import InputError
+    from monai_rigidreg.core.errors import InputError
+    from monai_rigidreg.export.dicom_reg import write_spatial_registration
 
     t0 = time.perf_counter()
     refs = (series_reference(ct[1], ct[0]), series_reference(cbct[1], cbct[0]))

@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
 
         print(json.dumps(example_config(args.storage_dir), indent=2))
         return 0
-    from monai_rigidreg.errors import InputError
+    from monai_rigidreg.core.errors import InputError
     from monai_rigidreg.serve.config import load_config
 
     if args.config is None:
@@ -116,7 +116,7 @@ def _serve(cfg: Any, args: argparse.Namespace) -> int:
 
 
 def _open_index(cfg: Any, readonly: bool) -> Any:
-    from monai_rigidreg.errors import InputError
+    from monai_rigidreg.core.errors import InputError
     from monai_rigidreg.serve.store import Store
 
     if not cfg.index_path.is_file():
@@ -209,7 +209,7 @@ def _status(cfg: Any, args: argparse.Namespace) -> int:
 
 
 def _trigger(cfg: Any, args: argparse.Namespace) -> int:
-    from monai_rigidreg.errors import InputError
+    from monai_rigidreg.core.errors import InputError
 
     store = _open_index(cfg, readonly=False)
     try:

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from monai_rigidreg.errors import InputError
+from monai_rigidreg.core.errors import InputError
 
 __all__ = ["ServeConfig", "Destination", "Classification", "CtSelection", "Thresholds", "load_config",
            "config_from_dict", "example_config", "EXAMPLE"]

@@ -136,7 +136,7 @@ class Service:
 
     def _lock_storage(self) -> None:
         """One service per storage folder: a second would register the same series again."""
-        from monai_rigidreg.errors import InputError
+        from monai_rigidreg.core.errors import InputError
 
         self._lock_file = open(self.cfg.storage_dir / "service.lock", "a+")  # noqa: SIM115 - held while running
         try:
@@ -335,7 +335,7 @@ class Service:
         return base.with_name(f"{base.name}.{k}")
 
     def _register(self, row: dict[str, Any]) -> None:
-        from monai_rigidreg.errors import RigidRegError
+        from monai_rigidreg.core.errors import RigidRegError
         from monai_rigidreg.serve import _pipeline
 
         uid, ct_uid = row["series_uid"], row["ct_series_uid"]

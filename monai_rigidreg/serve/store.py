@@ -157,7 +157,7 @@ class Store:
         self._lock = threading.RLock()
         if readonly:
             if not (self.root / "index.sqlite").is_file():
-                from monai_rigidreg.errors import InputError
+                from monai_rigidreg.core.errors import InputError
 
                 raise InputError("no index.sqlite here: the service has not run with this storage_dir yet", self.root)
             uri = f"file:{self.root / 'index.sqlite'}?mode=ro"

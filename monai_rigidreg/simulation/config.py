@@ -2,7 +2,7 @@
 :func:`make_config` (a preset plus overrides, e.g. the ``--set KEY=VALUE`` options of ``monai-rigidreg simulate``).
 
 Every value is checked when the configuration is made: a value of the wrong type (``--set cbct_views=many``) or out
-of range is an :class:`~monai_rigidreg.errors.InputError` that names the option and the value.
+of range is an :class:`~monai_rigidreg.core.errors.InputError` that names the option and the value.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from monai_rigidreg.errors import InputError
-from monai_rigidreg.geometry import Grid
+from monai_rigidreg.core.errors import InputError
+from monai_rigidreg.core.geometry import Grid
 from monai_rigidreg.simulation.phantoms import PHANTOMS
 from monai_rigidreg.simulation.physics import CBCTPhysics
 from monai_rigidreg.simulation.protocols import PROTOCOLS

@@ -42,14 +42,14 @@ import torch
 from tqdm.auto import tqdm
 
 import monai_rigidreg
-from monai_rigidreg.device import resolve_device
-from monai_rigidreg.errors import InputError, OutputExistsError
-from monai_rigidreg.geometry import params_to_matrix
-from monai_rigidreg.io import check_output_dir, make_dirs, remove_made_dirs
+from monai_rigidreg.core.device import resolve_device
+from monai_rigidreg.core.errors import InputError, OutputExistsError
+from monai_rigidreg.core.geometry import params_to_matrix
+from monai_rigidreg.io.volumes import check_output_dir, make_dirs, remove_made_dirs
 from monai_rigidreg.simulation.config import SimulationConfig, make_config
 from monai_rigidreg.simulation.phantoms import PHANTOMS, load_ct
 from monai_rigidreg.simulation.protocols import MotionCase, protocol_cases
-from monai_rigidreg.simulation.volumes import _seed, simulate_case, write_simct
+from monai_rigidreg.simulation.volumes import simulate_case, stream_seed, write_simct
 
 __all__ = ["simulate_dataset"]
 
@@ -68,7 +68,7 @@ def _num_objects(cfg: SimulationConfig, num_cases: int) -> int:
 
 def _object_name(cfg: SimulationConfig, k: int) -> str:
     if cfg.phantom in PHANTOM_FAMILIES:
-        return f"{cfg.phantom}-seed{_seed(cfg.seed, 0, k)}"
+        return f"{cfg.phantom}-seed{stream_seed(cfg.seed, 0, k)}"
     if cfg.phantom in PHANTOMS:
         return cfg.phantom
     return Path(cfg.phantom).name

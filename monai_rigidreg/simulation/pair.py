@@ -6,7 +6,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from monai_rigidreg.geometry import params_to_matrix
+from monai_rigidreg.core.geometry import params_to_matrix
 from monai_rigidreg.simulation.config import make_config
 from monai_rigidreg.simulation.volumes import simulate_case
 

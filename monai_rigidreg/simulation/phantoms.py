@@ -2,7 +2,7 @@
 anatomy (random label maps with random contrasts, :mod:`~monai_rigidreg.simulation.synth`) and real CTs.
 
 Every phantom becomes a volume of linear attenuation coefficients ``mu`` (1/mm, at 70 keV) on an axis-aligned
-:class:`~monai_rigidreg.geometry.Grid` centred on the isocentre, stored ``[nx, ny, nz]`` (MONAI order).
+:class:`~monai_rigidreg.core.geometry.Grid` centred on the isocentre, stored ``[nx, ny, nz]`` (MONAI order).
 Analytic phantoms are lists of :class:`Shape` whose values are *added* in units of water attenuation
 (``mu / mu_water``) and voxelized with supersampling (each voxel is the average over ``k^3`` sub-samples).
 
@@ -20,10 +20,10 @@ import numpy as np
 import SimpleITK as sitk
 import torch
 
-from monai_rigidreg.device import resolve_device
-from monai_rigidreg.errors import InputError
-from monai_rigidreg.geometry import Grid, rotation_matrix
-from monai_rigidreg.io import load_volume
+from monai_rigidreg.core.device import resolve_device
+from monai_rigidreg.core.errors import InputError
+from monai_rigidreg.core.geometry import Grid, rotation_matrix
+from monai_rigidreg.io.volumes import load_volume
 
 # the module, not its names: synth.py uses hu_to_mu from this module (see there)
 from monai_rigidreg.simulation import synth as _synth
@@ -74,7 +74,7 @@ class Shape:
         center: LPS position of the centre, mm.
         semi_axes: semi-axes along the local x, y, z axes, mm.
         angles: orientation ``(rx, ry, rz)`` in degrees: local axes are the columns of
-            :func:`monai_rigidreg.geometry.rotation_matrix`.
+            :func:`monai_rigidreg.core.geometry.rotation_matrix`.
     """
 
     kind: str

@@ -25,8 +25,8 @@ from typing import Any
 
 import torch
 
-from monai_rigidreg.geometry import Grid
-from monai_rigidreg.image_ops import gaussian_kernel_1d, separable_filter
+from monai_rigidreg.core.geometry import Grid
+from monai_rigidreg.core.image_ops import gaussian_kernel_1d, separable_filter
 from monai_rigidreg.simulation.projector import grid_axes
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry
 
@@ -114,7 +114,7 @@ def apply_cbct_physics(
             du, dv = geometry.pixel_pitch  # type: ignore[misc]
             # separable sampled Gaussian (radius ceil(3 sigma) pixels, normalized), edges replicated: the detector
             # signal continues smoothly. As dense matrix products: the kernel (~120 taps) is nearly as long as the
-            # detector axes (benchmarks/bench_gaussian.py, the [360, 128, 128] replicate table's matrix column)
+            # detector axes (benchmarks/speed/bench_gaussian.py, the [360, 128, 128] replicate table's matrix column)
             kernels = [
                 gaussian_kernel_1d(s, approx="sampled", normalize=True, size=2 * math.ceil(3 * s) + 1,
                                    dtype=primary.dtype, device=primary.device)

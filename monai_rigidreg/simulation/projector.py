@@ -1,7 +1,7 @@
 """Forward and back projectors in PyTorch (CPU or CUDA, same code).
 
 Volumes are channel-less ``[nx, ny, nz]`` tensors of linear attenuation (1/mm) on an axis-aligned
-:class:`~monai_rigidreg.geometry.Grid` (identity direction, LPS mm). Line integrals are unitless.
+:class:`~monai_rigidreg.core.geometry.Grid` (identity direction, LPS mm). Line integrals are unitless.
 
 * Cone beam, :func:`cone_forward`: Joseph-style plane sweeps. For each view the volume is cut into planes
   perpendicular to the axis (x or y) most parallel to the central ray; every ray meets each plane once and the
@@ -21,8 +21,8 @@ import math
 import torch
 import torch.nn.functional as F
 
-from monai_rigidreg.device import resolve_device
-from monai_rigidreg.geometry import Grid
+from monai_rigidreg.core.device import resolve_device
+from monai_rigidreg.core.geometry import Grid
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry, FanBeamGeometry
 
 __all__ = ["grid_axes", "cone_forward", "fan_forward", "cone_backproject", "fan_backproject"]
@@ -103,8 +103,7 @@ def cone_forward(
         device: ``"cpu"``, ``"cuda"`` or ``"auto"``.
         max_samples: planes are processed in chunks of about this many samples. 2^20: under the package's
             passive OpenMP waiting every operation on a chunk wakes the worker threads, and on 2 cores the
-            128^3 / 360-view CBCT took 3.3 s with 2^18, 2.7 s with 2^20 (``benchmarks/bench_simulation.py``,
-            ``bench_simulation_0.4.6_2026-12-02.txt``).
+            128^3 / 360-view CBCT took 3.3 s with 2^18, 2.7 s with 2^20 (``benchmarks/simulation/bench_simulation.py``).
         use_symmetry: use the 90 degree symmetry when it applies (same result, faster).
 
     Returns:

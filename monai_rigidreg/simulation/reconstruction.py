@@ -19,8 +19,8 @@ import math
 
 import torch
 
-from monai_rigidreg.device import resolve_device
-from monai_rigidreg.geometry import Grid
+from monai_rigidreg.core.device import resolve_device
+from monai_rigidreg.core.geometry import Grid
 from monai_rigidreg.simulation.projector import cone_backproject, fan_backproject
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry, FanBeamGeometry
 
@@ -151,8 +151,8 @@ def fbp_fan(
         window: filter window, one of :data:`FILTERS`.
         device: ``"cpu"``, ``"cuda"`` or ``"auto"``.
         fov_only: reconstruct only inside the field of view every view sees (:meth:`FanBeamGeometry.fov_radius`;
-            :meth:`FanBeamGeometry.fitted` sizes it to hold the object) and leave 0 outside (since 0.4.4; ``False``:
-            the incomplete-data values there, as before).
+            :meth:`FanBeamGeometry.fitted` sizes it to hold the object) and leave 0 outside (``False``:
+            the incomplete-data values there).
 
     Returns:
         ``[nx, ny, nz]`` float32 linear attenuation (1/mm).

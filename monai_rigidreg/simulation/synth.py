@@ -38,9 +38,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from monai_rigidreg.device import resolve_device
-from monai_rigidreg.geometry import Grid, rotation_matrix
-from monai_rigidreg.image_ops import gaussian_smooth
+from monai_rigidreg.core.device import resolve_device
+from monai_rigidreg.core.geometry import Grid, rotation_matrix
+from monai_rigidreg.core.image_ops import gaussian_smooth
 
 # the module, not its names: phantoms.py imports this module for its "synth" phantom (whichever of the two is
 # imported first, the other is then complete when its functions are called)

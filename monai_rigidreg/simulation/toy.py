@@ -9,11 +9,13 @@ the registration ground truth and no interpolation or padding enters the pair.
 
 from __future__ import annotations
 
+import numpy as np
+import SimpleITK as sitk
 import torch
 
-from monai_rigidreg.geometry import Grid, grid_points, params_to_matrix_torch
+from monai_rigidreg.core.geometry import Grid, grid_points, params_to_matrix_torch
 
-__all__ = ["random_phantom", "phantom_pair_batch", "random_params"]
+__all__ = ["random_phantom", "phantom_pair_batch", "random_params", "blob_ct"]
 
 
 def random_phantom(generator: torch.Generator, n_blobs: int = 10, radius: float = 40.0) -> dict[str, torch.Tensor]:
@@ -68,3 +70,25 @@ def random_params(
     """``[n, 6]`` uniform random parameters in ``+-max_translation`` mm and ``+-max_rotation`` degrees."""
     u = torch.rand(n, 6, generator=generator, dtype=torch.float64) * 2 - 1
     return u * torch.tensor([max_translation] * 3 + [max_rotation] * 3, dtype=torch.float64)
+
+
+def blob_ct(n: int = 48, spacing: float = 2.0) -> sitk.Image:
+    """A smooth CT-like test object in HU (float32 ``SimpleITK.Image``, ``n`` voxels of ``spacing`` mm a side, centred
+    on the origin, identity direction): an ellipsoidal soft-tissue body (0 HU) in air (-1000 HU) holding four
+    distinct blobs (-500 to 1200 HU), smoothed by a 2 mm Gaussian. The documentation's examples register it with a
+    shifted copy of itself.
+
+    >>> ct = blob_ct()
+    >>> ct.GetSize(), ct.GetSpacing(), ct.GetOrigin()
+    ((48, 48, 48), (2.0, 2.0, 2.0), (-47.0, -47.0, -47.0))
+    """
+    c = (n - 1) / 2.0
+    z, y, x = (a - c for a in np.mgrid[0:n, 0:n, 0:n].astype(np.float32))
+    arr = np.full((n, n, n), -1000.0, np.float32)
+    arr[(x / 20) ** 2 + (y / 16) ** 2 + (z / 18) ** 2 <= 1] = 0.0
+    for bx, by, bz, r, hu in [(-8, -4, 3, 5, 900), (7, 5, -6, 4, 500), (2, -9, -8, 3, -500), (-3, 8, 9, 4, 1200)]:
+        arr[(x - bx) ** 2 + (y - by) ** 2 + (z - bz) ** 2 <= r * r] = hu
+    img = sitk.GetImageFromArray(arr)
+    img.SetSpacing((spacing,) * 3)
+    img.SetOrigin((-c * spacing,) * 3)
+    return sitk.SmoothingRecursiveGaussian(img, 2.0)

@@ -26,17 +26,18 @@ import numpy as np
 import SimpleITK as sitk
 import torch
 
-from monai_rigidreg.device import resolve_device
-from monai_rigidreg.geometry import Grid, params_to_matrix
+from monai_rigidreg.core.device import resolve_device
+from monai_rigidreg.core.geometry import Grid, params_to_matrix
+from monai_rigidreg.core.warp import warp_volume
 from monai_rigidreg.simulation.config import SimulationConfig
 from monai_rigidreg.simulation.phantoms import PHANTOMS, make_phantom, mu_to_hu
 from monai_rigidreg.simulation.physics import CBCTPhysics, apply_cbct_physics, fov_mask
 from monai_rigidreg.simulation.projector import cone_forward, fan_forward, grid_axes
 from monai_rigidreg.simulation.reconstruction import fbp_fan, fdk
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry, FanBeamGeometry
-from monai_rigidreg.warp import warp_volume
 
-__all__ = ["simulate_simct", "simulate_cbct", "save_volume_hu", "save_fov_mask", "write_simct", "simulate_case"]
+__all__ = ["simulate_simct", "simulate_cbct", "save_volume_hu", "save_fov_mask", "write_simct", "simulate_case",
+           "stream_seed"]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -166,7 +167,7 @@ def save_volume_hu(mu: torch.Tensor, grid: Grid, path: str | Path, dtype: str = 
 
     ``dtype="int16"`` (default) stores whole HU, clipped to the int16 range, as CT scanners and DICOM do: a
     rounding error of at most 0.5 HU, far below the noise, for smaller files read in about half the time of
-    compressed float32 (``benchmarks/bench_inference_speed.py``). ``"float32"`` keeps the reconstruction's values
+    compressed float32 (``benchmarks/speed/bench_inference_speed.py``). ``"float32"`` keeps the reconstruction's values
     exactly.
     """
     if dtype not in ("int16", "float32"):
@@ -199,13 +200,13 @@ def _write_atomic(img: sitk.Image, path: Path) -> Path:
 # ---------------------------------------------------------------------------------------------------------------
 # One case of a configuration
 # ---------------------------------------------------------------------------------------------------------------
-def _seed(*keys: int) -> int:
+def stream_seed(*keys: int) -> int:
     """A seed derived from the master seed and the stream keys (0 objects, 1 CBCT noise, 2 Sim-CT noise; index)."""
     return int(np.random.SeedSequence([int(k) for k in keys]).generate_state(1)[0])
 
 
 def _object_volume(cfg: SimulationConfig, k: int, grid: Grid, device: torch.device) -> torch.Tensor:
-    mu, _ = make_phantom(cfg.phantom, grid, _seed(cfg.seed, 0, k), cfg.supersample, cfg.radius_mm, device)
+    mu, _ = make_phantom(cfg.phantom, grid, stream_seed(cfg.seed, 0, k), cfg.supersample, cfg.radius_mm, device)
     return mu
 
 
@@ -229,7 +230,7 @@ def write_simct(cfg: SimulationConfig, object_index: int, path: str | Path) -> P
         cfg.sdd,
         cfg.simct_filter,
         cfg.simct_photons,
-        _seed(cfg.seed, 2, object_index),
+        stream_seed(cfg.seed, 2, object_index),
         dev,
     )
     return save_volume_hu(rec, grid, path, cfg.volume_dtype)
@@ -289,7 +290,7 @@ def simulate_case(
         cfg.sdd,
         cfg.cbct_physics,
         cfg.cbct_filter,
-        seed=_seed(cfg.seed, 1, case["index"]),
+        seed=stream_seed(cfg.seed, 1, case["index"]),
         detector_radius_mm=radius,
         mask_outside_fov=cfg.mask_outside_fov,
         padding_mode="zeros" if cfg.phantom in PHANTOMS else "border",

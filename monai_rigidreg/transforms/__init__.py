@@ -1,5 +1,5 @@
 """MONAI transforms of monai-rigidreg: random rigid motion, image-domain CBCT degradation, network-grid
-preprocessing. All geometry goes through :mod:`monai_rigidreg.geometry` (LPS mm, fixed -> moving)."""
+preprocessing. All geometry goes through :mod:`monai_rigidreg.core.geometry` (LPS mm, fixed -> moving)."""
 
 from __future__ import annotations
 

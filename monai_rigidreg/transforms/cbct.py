@@ -38,7 +38,7 @@ from monai.data.meta_obj import get_track_meta
 from monai.transforms import MapTransform, RandomizableTransform
 from monai.utils import convert_to_dst_type, convert_to_tensor
 
-from monai_rigidreg.image_ops import gaussian_smooth
+from monai_rigidreg.core.image_ops import gaussian_smooth
 from monai_rigidreg.transforms.utils import ensure_interval, grid_of
 
 __all__ = ["RandCBCTDegradation", "RandCBCTDegradationd", "CBCT_KEY", "CBCT_RECORD_KEYS"]
@@ -82,7 +82,7 @@ def _gaussian_blur(x: torch.Tensor, sigma_vox: Sequence[float]) -> torch.Tensor:
     """Separable Gaussian blur of ``[C, x, y, z]``; ``sigma_vox`` per spatial axis (voxels, < 0.05 skipped).
 
     MONAI's ``erf`` kernel truncated at 3 sigma, renormalized, replicate padding
-    (:func:`~monai_rigidreg.image_ops.gaussian_smooth`).
+    (:func:`~monai_rigidreg.core.image_ops.gaussian_smooth`).
     """
     sigmas = [float(s) if s >= 0.05 else 0.0 for s in sigma_vox]
     return gaussian_smooth(x, sigmas, truncated=3.0, padding="replicate", normalize=True)

@@ -23,8 +23,8 @@ from monai.data.meta_obj import get_track_meta
 from monai.transforms import InvertibleTransform, MapTransform, ScaleIntensityRange, ScaleIntensityRanged
 from monai.utils import TraceKeys, convert_to_dst_type, convert_to_tensor, ensure_tuple, ensure_tuple_rep
 
-from monai_rigidreg.geometry import Grid
-from monai_rigidreg.grid_sampling import (  # re-exported: the resampling itself lives there, without MONAI
+from monai_rigidreg.core.geometry import Grid
+from monai_rigidreg.core.grid_sampling import (  # re-exported: the resampling itself lives there, without MONAI
     PaddingValue,
     antialias_for_grid,
     antialias_sigmas,
@@ -60,7 +60,7 @@ def network_grid(
     """The axis-aligned network grid (identity LPS direction) centred on a reference image.
 
     Args:
-        reference: a :class:`~monai_rigidreg.geometry.Grid`, a channel-first ``MetaTensor`` ``[C, x, y, z]`` or a
+        reference: a :class:`~monai_rigidreg.core.geometry.Grid`, a channel-first ``MetaTensor`` ``[C, x, y, z]`` or a
             3D ``SimpleITK.Image`` (the fixed image); ignored for the centre when ``center`` is given.
         size: grid size in voxels ``(nx, ny, nz)`` (one int: isotropic).
         spacing: grid spacing in mm (one number: isotropic).
@@ -93,7 +93,7 @@ def _grid_affine(img: torch.Tensor, grid: Grid) -> torch.Tensor:
 class ResampleToNetworkGrid(InvertibleTransform):
     """Resample a channel-first image ``[C, x, y, z]`` (any grid, any direction) onto the network grid.
 
-    Physical resampling with the identity transform (:func:`monai_rigidreg.warp.warp_volume`), linear (or
+    Physical resampling with the identity transform (:func:`monai_rigidreg.core.warp.warp_volume`), linear (or
     nearest) interpolation, constant padding. The output ``MetaTensor`` carries the network grid's affine (RAS, or
     LPS if the input's ``meta["space"]`` is LPS), so ``Grid.from_metatensor(out)`` is the network grid.
     ``inverse()`` resamples back onto the original grid.
@@ -240,7 +240,7 @@ class ResampleToNetworkGridd(MapTransform, InvertibleTransform):
         MapTransform.__init__(self, keys, allow_missing_keys)
         if size is None or spacing is None:
             raise ValueError("size and spacing of the network grid are required (the bundle's network_size and "
-                             "network_spacing, see monai_rigidreg.network_grid.NetworkGridSpec)")
+                             "network_spacing, see monai_rigidreg.core.network_grid.NetworkGridSpec)")
         self.resampler = ResampleToNetworkGrid(size, spacing, center, padding_mode=padding_mode, antialias=antialias)
         self.ref_key = ref_key
         self.center = center

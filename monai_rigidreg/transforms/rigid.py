@@ -7,7 +7,7 @@ the moving image, the registration transform (fixed -> moving) is ``T = M`` and
 ``sitk.Resample(out, F, params_to_sitk(params, center))`` reproduces ``F``.
 
 ``M(x) = R (x - c) + c + t`` with ``R = Rz(rz) Rx(rx) Ry(ry)``: exactly ``SimpleITK.Euler3DTransform`` with
-user parameters ``(tx, ty, tz, rx, ry, rz)`` in mm / degrees, built with :func:`monai_rigidreg.geometry`.
+user parameters ``(tx, ty, tz, rx, ry, rz)`` in mm / degrees, built with :func:`monai_rigidreg.core.geometry`.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from monai.data.meta_obj import get_track_meta
 from monai.transforms import InvertibleTransform, MapTransform, RandomizableTransform
 from monai.utils import TraceKeys, convert_to_dst_type, convert_to_tensor, ensure_tuple, ensure_tuple_rep
 
-from monai_rigidreg.geometry import Grid, compose_matrices, invert_matrix, matrix_to_params, params_to_matrix
+from monai_rigidreg.core.geometry import Grid, compose_matrices, invert_matrix, matrix_to_params, params_to_matrix
 from monai_rigidreg.transforms.utils import (
     PaddingValue,
     as_matrix,
@@ -64,7 +64,7 @@ def apply_rigid_motion(
 
     Args:
         img: plain tensor ``[C, x, y, z]`` (any dtype/device).
-        motion: 4x4 rigid matrix (LPS mm), e.g. from :func:`monai_rigidreg.geometry.params_to_matrix`.
+        motion: 4x4 rigid matrix (LPS mm), e.g. from :func:`monai_rigidreg.core.geometry.params_to_matrix`.
         grid: grid of ``img`` (default: identity RAS affine).
         mode: ``"bilinear"`` or ``"nearest"``.
         padding_mode: ``grid_sample`` padding mode, used when ``padding_value`` is ``None``.

@@ -1,6 +1,6 @@
 """Small helpers shared by the transforms of :mod:`monai_rigidreg.transforms` (not public API).
 
-Geometry always goes through :mod:`monai_rigidreg.geometry` and :mod:`monai_rigidreg.warp`; these helpers only
+Geometry always goes through :mod:`monai_rigidreg.core.geometry` and :mod:`monai_rigidreg.core.warp`; these helpers only
 adapt MONAI data (``MetaTensor`` / tensors / arrays, channel first ``[C, x, y, z]``) to them.
 """
 
@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from monai_rigidreg.geometry import Grid
-from monai_rigidreg.grid_sampling import PaddingValue, resample_physical  # re-exported: they live there
+from monai_rigidreg.core.geometry import Grid
+from monai_rigidreg.core.grid_sampling import PaddingValue, resample_physical  # re-exported: they live there
 
 __all__ = [
     "PaddingValue",

@@ -1,0 +1,2 @@
+"""Accuracy: registration error against known motion (held-out real CTs, clinical geometry, capture range,
+damaged inputs)."""

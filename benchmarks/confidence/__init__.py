@@ -1,0 +1,1 @@
+"""Confidence: whether the failure flag catches failed registrations and spares good ones."""

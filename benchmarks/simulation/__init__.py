@@ -1,0 +1,1 @@
+"""Simulation: the simulator's and the synthetic anatomy's cost and quality."""

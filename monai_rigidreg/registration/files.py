@@ -1,0 +1,150 @@
+"""Files in, files out: the inputs read, registered and the output folder written (the ``register`` command, the
+bundle's ``inference.json`` and :class:`~monai_rigidreg.registration.pairs.RegistrationEvaluator`)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from monai_rigidreg.core.errors import InputError
+from monai_rigidreg.core.geometry import PARAM_NAMES, Grid
+from monai_rigidreg.export.couch_shifts import couch_shifts, lps_to_iec
+from monai_rigidreg.export.outputs import NO_REG_FOR_FILES, TRANSFORM_FORMATS, dicom_references, write_outputs
+from monai_rigidreg.export.provenance import registration_provenance
+from monai_rigidreg.io.dicom_series import check_distinct_inputs
+from monai_rigidreg.io.volumes import load_volume
+from monai_rigidreg.registration.inputs import check_register_inputs
+from monai_rigidreg.registration.match_region import MATCH_MODES, parse_roi
+from monai_rigidreg.registration.registrar import RigidRegistrar
+
+__all__ = ["register_files"]
+
+logger = logging.getLogger(__name__)
+
+
+def register_files(
+    registrar: RigidRegistrar,
+    fixed: str | Path,
+    moving: str | Path,
+    output_dir: str | Path,
+    refine: bool = False,
+    overwrite: bool = False,
+    qc: bool = True,
+    cascade_steps: int | None = None,
+    fixed_series_uid: str | None = None,
+    moving_series_uid: str | None = None,
+    isocenter: Any = None,
+    reg: str = "auto",
+    transform_format: str = "tfm",
+    fine_stage: bool | None = None,
+    patient_position: str | None = None,
+    global_init: bool | None = None,
+    roi: Any = None,
+    match: str = "soft",
+    keep_couch: bool = False,
+) -> dict[str, Path]:
+    """Load both volumes, register them and write the standard outputs.
+
+    The inputs and the output folder are checked (:func:`~monai_rigidreg.registration.inputs.check_register_inputs`)
+    before anything is read or computed, so a refused run costs nothing and writes nothing.
+
+    Args:
+        registrar: the loaded network (:meth:`~monai_rigidreg.registration.RigidRegistrar.from_bundle`).
+        fixed, moving: CT and CBCT: NIfTI, MHA, NRRD or a DICOM folder.
+        output_dir: the folder to write (must not exist or be empty unless ``overwrite``).
+        refine, cascade_steps: as for :func:`~monai_rigidreg.registration.register`.
+        overwrite, qc: as for :func:`~monai_rigidreg.export.outputs.write_outputs`.
+        fixed_series_uid, moving_series_uid: DICOM series to read from a folder holding several.
+        isocenter: plan isocentre (LPS mm, CT coordinates) of the couch shifts; default: the CBCT's centre (its
+            coordinates taken as a CT point: a CBCT is reconstructed about the treatment isocentre), recorded in
+            ``result.json`` with where it came from. The CT's DICOM Patient Position orients the couch axes
+            (missing: head-first supine is assumed, with a warning, and recorded).
+        reg: ``registration.dcm``: one of :data:`~monai_rigidreg.export.outputs.REG_MODES`.
+        transform_format: ``"tfm"`` or ``"h5"`` (the ITK transform file).
+        fine_stage: ``False``: the learned regression alone (see :func:`~monai_rigidreg.registration.register`).
+        global_init, roi, match, keep_couch: the global search, the region of interest, the match mode and the
+            couches, as for :func:`~monai_rigidreg.registration.register` (the ROI is read and checked before
+            registering).
+        patient_position: DICOM Patient Position of the CT (``HFS``, ``FFS``, ...) for the couch axes; default the
+            CT's DICOM header, else head-first supine (assumed, with a warning). A value given here that the couch
+            shifts do not support is refused before registering; one read from the header gives a warning and no
+            couch shifts.
+
+    Returns:
+        ``{file name: path}`` of the files written (the result itself is in ``result.json``).
+    """
+    check_register_inputs(fixed, moving, output_dir, overwrite, cascade_steps)
+    check_distinct_inputs(fixed, moving, fixed_series_uid, moving_series_uid)
+    roi = parse_roi(roi)
+    if match not in MATCH_MODES:
+        raise InputError(f"match must be one of {MATCH_MODES}, got {match!r}")
+    if transform_format not in TRANSFORM_FORMATS:
+        raise InputError(f"--transform-format must be one of {TRANSFORM_FORMATS}, got {transform_format!r}")
+    iso = None if isocenter is None else _point(isocenter, "isocenter")
+    refs, reg_warning = dicom_references(fixed, moving, fixed_series_uid, moving_series_uid, reg)
+    # the audit trail's header facts are read once, before registering; the couch axes come from them
+    provenance = registration_provenance(fixed, moving, fixed_series_uid, moving_series_uid,
+                                         bundle=getattr(registrar, "source", {}), device=str(registrar.device))
+    position, position_source, position_problem = _patient_position(provenance["inputs"]["fixed"], patient_position)
+    load_warnings: list[str] = []  # e.g. a DICOM series resampled over a slice gap
+    fixed_img = load_volume(fixed, series_uid=fixed_series_uid, warnings=load_warnings)
+    moving_img = load_volume(moving, series_uid=moving_series_uid, warnings=load_warnings)
+    result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps, fine_stage=fine_stage,
+                       global_init=global_init, roi=roi, match=match, keep_couch=keep_couch)
+    result.provenance = provenance
+    if load_warnings:  # in the audit trail too, before the registration's own
+        result.details["warnings"] = load_warnings + result.details.get("warnings", [])
+    if reg_warning:
+        logger.warning("%s", reg_warning)
+        result.details.setdefault("warnings", []).append(reg_warning)
+    source = "--isocenter" if iso is not None else "CBCT centre (default)"
+    if iso is None:
+        iso = Grid.from_sitk(moving_img).center()
+    if position_problem:
+        logger.warning("%s", position_problem)
+        result.details.setdefault("warnings", []).append(position_problem)
+        result.couch_shift = {"unavailable": position_problem}
+    else:
+        result.couch_shift = {**couch_shifts(result.matrix, position, iso).to_dict(), "isocentre_source": source,
+                              "patient_position_source": position_source}
+    paths = write_outputs(result, fixed_img, moving_img, output_dir, overwrite=overwrite, qc=qc,
+                          names=(Path(fixed).name, Path(moving).name), transform_format=transform_format,
+                          dicom_references=refs)
+    if refs is None and reg == "auto" and not reg_warning:
+        logger.info("%s", NO_REG_FOR_FILES)
+    logger.info("registered %s to %s: %s (confidence %.2f)", moving, fixed,
+                ", ".join(f"{n}={v:.2f}" for n, v in zip(PARAM_NAMES, result.params)), result.confidence)
+    return paths
+
+
+
+
+def _patient_position(fixed_record: dict[str, Any], given: str | None) -> tuple[str | None, str, str]:
+    """``(position or None, where it came from, why no couch shifts can be given or "")`` from ``--patient-position``
+    or the CT's :func:`~monai_rigidreg.export.provenance.input_record`, before registering."""
+    if given:
+        lps_to_iec(given)  # InputError for an unsupported value the user gave: before any work
+        return given.strip().upper(), "--patient-position", ""
+    if fixed_record.get("format") != "dicom":
+        return None, "assumed (no DICOM header)", ""
+    header = fixed_record.get("patient_position") or None
+    if header is None:
+        return None, "assumed (no Patient Position in the CT's header)", ""
+    try:
+        lps_to_iec(header)
+    except InputError as exc:
+        return None, "CT DICOM header", f"no couch shifts: the CT's {exc}"
+    return header, "CT DICOM header", ""
+
+
+def _point(value: Any, name: str) -> tuple[float, float, float]:
+    """``"x,y,z"`` or three numbers -> a point (mm); :class:`~monai_rigidreg.core.errors.InputError` otherwise."""
+    parts = value.replace(",", " ").split() if isinstance(value, str) else list(value)
+    try:
+        point = tuple(float(v) for v in parts)
+    except (TypeError, ValueError):
+        point = ()
+    if len(point) != 3 or not all(abs(v) < 1e6 for v in point):
+        raise InputError(f"{name} must be three numbers x,y,z in mm (CT coordinates, LPS), got {value!r}")
+    return point  # type: ignore[return-value]

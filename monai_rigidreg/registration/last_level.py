@@ -1,0 +1,142 @@
+"""The last level: Gauss-Newton alignment over the whole CBCT field of view at the inputs' own resolution.
+
+The network (learned estimate and Gauss-Newton stage) works on a 128 mm cube at 2 mm around the CBCT centre. A
+clinical CBCT covers more (a 250 mm field of view, 150-200 mm long) and is often finer; elastix, given the whole
+images, uses all of it. :func:`refine_native` adds one level after the network: the same contrast-robust features
+(:func:`~monai_rigidreg.networks.gauss_newton.alignment_features`, intensity and local contrast) and the same
+inverse-compositional Gauss-Newton steps with the smooth intensity bias
+(:func:`~monai_rigidreg.networks.gauss_newton.gauss_newton_align`), on an axis-aligned grid that covers the CBCT's
+field of view (capped at ``max_extent_mm``) at the finer of the two images' spacings (not below ``min_spacing_mm``,
+and coarser where the voxel count would exceed ``max_voxels``).
+
+Frames: the grid is placed in the CT (fixed) frame around the CT point the current estimate maps to the CBCT
+centre; the CBCT is sampled through the estimate ``T`` onto it (one interpolation), the steps estimate a residual
+``C`` from the identity, and the result is ``T o C`` (fixed -> moving, LPS mm). Weights: the CBCT's field of view as
+placed by ``T``, eroded by ``support_erosion_mm`` (its own edge is no anatomy), times an optional match-region
+weight on the CT.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import SimpleITK as sitk
+import torch
+
+from monai_rigidreg.core.geometry import Grid, invert_matrix, transform_points
+from monai_rigidreg.core.grid_sampling import normalize_hu, sitk_on_grid
+from monai_rigidreg.core.image_ops import erode
+from monai_rigidreg.networks.gauss_newton import alignment_features, gauss_newton_align
+from monai_rigidreg.registration.match_region import weight_on_grid
+
+__all__ = ["CANDIDATE_SHARE_MAX", "native_grid", "refine_native", "support_reach"]
+
+CANDIDATE_SHARE_MAX = 0.8
+"""The last level's steps go over the candidate voxels (:func:`support_reach`) only where these are at most this
+share of its grid: gathered at arbitrary voxels, a step costs about 1.1-1.2x per voxel what it costs over the whole
+grid (``python -m benchmarks.speed.bench_network_paths``'s last-level rows: with 69 % of a 102^3 grid 0.31 s instead of
+0.39 s, with 97 % of a paper-protocol 64^3 grid 0.107 s instead of 0.091 s)."""
+
+
+def native_grid(fixed: sitk.Image, moving: sitk.Image, matrix: np.ndarray, min_spacing_mm: float = 1.0,
+                max_extent_mm: float = 256.0, max_voxels: int = 1_500_000) -> Grid:
+    """The last level's grid (CT frame): centred on ``T^-1`` of the CBCT centre, the CBCT's extent (capped), the
+    finer of the two images' spacings (at least ``min_spacing_mm``; coarser where it would hold more voxels than
+    ``max_voxels``)."""
+    m_grid = Grid.from_sitk(moving)
+    lo, hi = m_grid.physical_extent()
+    extent = np.minimum(np.asarray(hi) - np.asarray(lo) + np.asarray(m_grid.spacing), max_extent_mm)
+    spacing = max(min_spacing_mm, min(min(fixed.GetSpacing()), min(moving.GetSpacing())))
+    while np.prod(np.floor(extent / spacing)) > max_voxels:
+        spacing *= 1.25
+    size = [max(8, int(np.floor(e / spacing))) for e in extent]
+    center = transform_points(invert_matrix(matrix), m_grid.center()[None])[0]
+    return Grid.centered(size, (spacing,) * 3, center)
+
+
+@torch.no_grad()
+def refine_native(
+    fixed: sitk.Image,
+    moving: sitk.Image,
+    matrix: np.ndarray,
+    moving_fov: sitk.Image,
+    weights: Sequence[sitk.Image] = (),
+    iterations: int = 4,
+    hu_range: tuple[float, float] = (-1200.0, 2000.0),
+    highpass_sigma_mm: float = 16.0,
+    highpass_weight: float = 3.0,
+    support_erosion_mm: float = 8.0,
+    bias_degree: int = 2,
+    min_spacing_mm: float = 1.0,
+    max_extent_mm: float = 256.0,
+    max_voxels: int = 1_500_000,
+    device: str | torch.device = "cpu",
+    tolerance: tuple[float, float] | None = (0.01, 0.01),
+    secant: bool = False,
+) -> tuple[np.ndarray, Grid]:
+    """Refine a fixed -> moving 4x4 ``matrix`` (LPS mm) at native resolution over the CBCT field of view.
+
+    Args:
+        fixed, moving: the CT and the CBCT (HU), any grids.
+        matrix: the current estimate (e.g. the network's), fixed -> moving.
+        moving_fov: the CBCT's field-of-view mask on its grid.
+        weights: match-region weights on the CT's physical space (any grids; they multiply,
+            :func:`~monai_rigidreg.registration.match_region.weight_on_grid`), e.g. the ROI weight and the body mask.
+        iterations: Gauss-Newton steps (each at most 10 mm / 5 degrees).
+        hu_range: the HU window mapped to [0, 1]. Its lower end lies below air on purpose: clipped at -1000 HU, the
+            noise of a CBCT's air is clipped on one side only, its mean rises above the CT's, and the intensity
+            channel pulls the body surface: measured in ``tests/test_precision.py``'s pair (25 HU noise), a 0.42 mm
+            bias with -1000, 0.004 mm with -1200.
+        highpass_sigma_mm, highpass_weight: the local-contrast feature (the fine stage's settings).
+        support_erosion_mm: erosion of the CBCT field of view.
+        bias_degree: the smooth intensity bias estimated with the pose (-1: none).
+        min_spacing_mm, max_extent_mm, max_voxels: the grid (:func:`native_grid`).
+        device: where to compute.
+        tolerance: ``(mm, degrees)``: stop early once a step is below both (``None``: all ``iterations``).
+        secant: secant-scaled steps (see :func:`~monai_rigidreg.networks.gauss_newton.gauss_newton_align`).
+
+    Returns:
+        ``(refined matrix, the grid used)``.
+    """
+    grid = native_grid(fixed, moving, matrix, min_spacing_mm, max_extent_mm, max_voxels)
+    a, b = hu_range
+
+    fixed_t = normalize_hu(sitk_on_grid(fixed, grid, "bilinear", a), a, b)[None].to(device)
+    moving_t = normalize_hu(sitk_on_grid(moving, grid, "bilinear", a, matrix=matrix), a, b)[None].to(device)
+    fov = (sitk_on_grid(moving_fov, grid, "nearest", 0.0, matrix=matrix) > 0).to(torch.float32)[None].to(device)
+    radius = [max(1, round(support_erosion_mm / s)) for s in grid.spacing]
+    support = erode(fov, radius)
+    w = weight_on_grid(weights, grid)
+    w = None if w is None else w[None].to(device)
+    feats = alignment_features(torch.cat([moving_t, fixed_t]), grid.spacing, 1e-3, highpass_sigma_mm, highpass_weight)
+    candidates, reach = support_reach(fov, radius, grid.spacing, w)
+    if float(candidates.float().mean()) > CANDIDATE_SHARE_MAX:
+        candidates = None  # nearly the whole grid: the dense steps are cheaper
+    # the support rides with the moving image (it was sampled through the estimate too): identity start
+    eye = torch.eye(4, dtype=torch.float64, device=device)[None]
+    residual = gauss_newton_align(feats[:1], feats[1:], grid, eye, iterations=iterations, weight=w,
+                                  moving_support=support, bias_degree=bias_degree, tolerance=tolerance,
+                                  secant=secant, candidates=candidates, reach_mm=reach)
+    return matrix @ residual[0].cpu().numpy(), grid
+
+
+def support_reach(fov: torch.Tensor, radius: Sequence[int], spacing: Sequence[float],
+                  weight: torch.Tensor | None) -> tuple[torch.Tensor, float]:
+    """The voxels :func:`refine_native`'s Gauss-Newton steps sum over, and how far the estimate may move while they
+    hold every voxel that can carry weight (``gauss_newton_align``'s ``candidates`` and ``reach_mm``).
+
+    ``fov``: ``[1, 1, x, y, z]`` field of view (0/1) on the grid; ``radius``: the support's erosion (voxels per
+    axis: the support is ``erode(fov, radius)``); ``weight``: ``[1, 1, x, y, z]`` or ``None``. Returns the
+    ``[1, 1, x, y, z]`` boolean candidates, the field of view where the weight is positive, and
+    ``min_a (radius_a + 1/2) * spacing_a`` (mm).
+
+    Why: a voxel counts where the support warped by the estimate covers it (trilinear value > 0.999), which needs
+    the grid voxel nearest to its sampling point in the support (that voxel's trilinear weight is at least 1/8). A
+    voxel outside the field of view is more than ``radius_a`` voxels from every support voxel along some axis
+    ``a`` (the support is the field of view eroded by a box), so its sampling point must have moved by at least
+    ``(radius_a + 1/2) * spacing_a`` mm.
+    """
+    inside = fov > 0
+    reach = min((r + 0.5) * s for r, s in zip(radius, spacing))
+    return (inside if weight is None else inside & (weight > 0)), float(reach)

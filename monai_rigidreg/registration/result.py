@@ -1,0 +1,88 @@
+"""What a registration returns: :class:`RegistrationResult` (the six parameters, their transform and the checks)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import SimpleITK as sitk
+
+from monai_rigidreg.core.geometry import LPS_TO_RAS, PARAM_NAMES, invert_matrix, params_to_matrix, params_to_sitk
+from monai_rigidreg.core.json_safe import json_safe
+
+__all__ = ["RegistrationResult"]
+
+
+@dataclass
+class RegistrationResult:
+    """Result of :func:`~monai_rigidreg.registration.register`.
+
+    Attributes:
+        params: ``(tx, ty, tz, rx, ry, rz)`` mm / degrees, fixed -> moving, about ``center`` (``docs/conventions.md``).
+        center: rotation centre (LPS mm): the fixed image centre.
+        registered: the moving image resampled onto the fixed grid (``None`` if not asked for).
+        timings: seconds per stage (``load``, ``body``, ``preprocess``, ``network``, ``global_search``,
+            ``second_start``, ``native_level``, ``refine``, ``confidence``, ``resample``, ``total``; those that ran).
+            The global search runs in a worker thread beside the network from the identity: ``global_search`` is
+            its own duration, which overlaps ``network``, and ``global_search_wait`` the time the registration
+            waited for it afterwards. The confidence check's swapped-input estimate runs in a worker thread beside
+            the last level: ``swap_estimate`` is its own duration (overlapping ``native_level``; ``confidence``
+            includes only the wait for it).
+        confidence: score in [0, 1] (see :func:`~monai_rigidreg.registration.confidence.confidence_score`); ``flagged``
+            when below the threshold. 0 where an input's intensities are certainly not HU
+            (:func:`~monai_rigidreg.registration.inputs.not_hu`; ``details.signals.not_hu`` names it): the signals are
+            calibrated on HU.
+        flagged: likely failure: check the QC figure.
+        details: network-only parameters, refinement change, similarity before/after, swap consistency, and
+            ``warnings`` (a list of sentences, e.g. an input whose intensities are not HU) where there are any.
+        provenance: the audit trail (:func:`~monai_rigidreg.export.provenance.registration_provenance`: inputs and their
+            DICOM UIDs, bundle and weights' SHA-256, software versions, device, time, command line), filled in by
+            :func:`~monai_rigidreg.registration.files.register_files`; empty for in-memory images.
+        couch_shift: the correction in IEC 61217 couch terms at the isocentre
+            (:func:`~monai_rigidreg.export.couch_shifts.couch_shifts`), filled in by
+            :func:`~monai_rigidreg.registration.files.register_files`.
+    """
+
+    params: np.ndarray
+    center: np.ndarray
+    registered: sitk.Image | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+    confidence: float = float("nan")
+    flagged: bool = False
+    details: dict[str, Any] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
+    couch_shift: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def transform(self) -> sitk.Euler3DTransform:
+        """The ``SimpleITK.Euler3DTransform`` (fixed -> moving): ``sitk.Resample(moving, fixed, transform)``."""
+        return params_to_sitk(self.params, self.center)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous matrix of :attr:`transform` (LPS mm)."""
+        return params_to_matrix(self.params, self.center)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (``result.json``)."""
+        return {
+            "params": {n: float(v) for n, v in zip(PARAM_NAMES, self.params)},
+            "units": {"translation": "mm", "rotation": "degrees"},
+            "convention": "ITK LPS; maps fixed (CT) points to moving (CBCT) points; Euler3DTransform, "
+            "rotation R = Rz @ Rx @ Ry about center",
+            "center": [float(v) for v in self.center],
+            "matrix": [[float(v) for v in row] for row in self.matrix],
+            # the same transform the other way round (CBCT points -> CT points, LPS: what a DICOM Spatial
+            # Registration stores) and in RAS for 3D Slicer (the "to parent" matrix Slicer shows for the CBCT
+            # placed under the loaded transform.tfm)
+            "matrix_moving_to_fixed": [[float(v) for v in row] for row in invert_matrix(self.matrix)],
+            "matrix_moving_to_fixed_ras": [[float(v) for v in row]
+                                           for row in LPS_TO_RAS @ invert_matrix(self.matrix) @ LPS_TO_RAS],
+            "runtime_s": {k: round(float(v), 4) for k, v in self.timings.items()},
+            "confidence": json_safe(float(self.confidence)),  # null where the check did not run
+            "flagged": bool(self.flagged),
+            "details": json_safe(self.details),
+            "provenance": json_safe(self.provenance),
+            **({"couch_shift": json_safe(self.couch_shift)} if self.couch_shift else {}),
+        }

@@ -1,0 +1,197 @@
+"""The last level at native resolution: its grid, and a residual of a few mm / degrees removed to a fraction of a mm."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+import torch
+from conftest import synth_ct
+
+from monai_rigidreg.core.geometry import Grid, matrix_to_sitk, params_to_matrix, transform_points
+from monai_rigidreg.core.image_ops import erode
+from monai_rigidreg.core.warp import warp_volume
+from monai_rigidreg.registration.confidence import cylindrical_fov_mask
+from monai_rigidreg.registration.last_level import native_grid, refine_native, support_reach
+
+
+def _pair(truth_iso, iso, cb_size=(96, 96, 60), cb_spacing=1.5, seed=21):
+    grid = Grid.centered((90, 90, 90), (2.5, 2.5, 2.5))
+    ct = synth_ct(grid, seed)
+    truth = params_to_matrix(truth_iso, iso)
+    cb_grid = Grid.centered(cb_size, (cb_spacing,) * 3, iso)
+    cbct = sitk.Resample(ct, cb_grid.to_sitk(), matrix_to_sitk(np.linalg.inv(truth)), sitk.sitkLinear, -1000.0)
+    arr = sitk.GetArrayFromImage(cbct) + 25.0 * np.random.default_rng(seed).standard_normal(cb_size[::-1])
+    noisy = sitk.GetImageFromArray(arr.astype(np.float32))
+    noisy.CopyInformation(cbct)
+    return ct, noisy, truth
+
+
+def _mean_distance(a, b, pts):
+    return float(np.linalg.norm(transform_points(a, pts) - transform_points(b, pts), axis=1).mean())
+
+
+def test_native_grid_covers_the_cbct_at_the_finer_spacing_within_the_voxel_budget():
+    iso = np.array([10.0, -20.0, 5.0])
+    ct, cbct, truth = _pair([0, 0, 0, 0, 0, 0], iso)
+    g = native_grid(ct, cbct, truth)
+    assert g.spacing == (1.5, 1.5, 1.5)  # the CBCT's, finer than the CT's 2.5 mm
+    assert g.size == (96, 96, 60)  # its extent (144 x 144 x 90 mm)
+    np.testing.assert_allclose(g.center(), iso, atol=1e-9)  # T^-1 of the CBCT centre (identity here)
+    moved = params_to_matrix([20.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(native_grid(ct, cbct, moved).center(), iso - [20.0, 0.0, 0.0], atol=1e-9)
+    small = native_grid(ct, cbct, truth, max_voxels=100_000)
+    assert small.spacing[0] > 1.5 and np.prod(small.size) <= 100_000
+
+
+def test_refine_native_removes_a_residual_of_a_few_mm_and_degrees():
+    iso = np.array([10.0, -20.0, 5.0])
+    truth_iso = [6.0, -3.0, 4.0, 4.0, -3.0, 5.0]
+    ct, cbct, truth = _pair(truth_iso, iso)
+    start = truth @ params_to_matrix([1.5, -1.0, 1.2, 1.0, -0.8, 1.2], iso)  # the network's residual error
+    box = np.stack(np.meshgrid(*[np.linspace(-50, 50, 5)] * 3, indexing="ij"), -1).reshape(-1, 3) + iso
+    before = _mean_distance(start, truth, box)
+    refined, grid = refine_native(ct, cbct, start, cylindrical_fov_mask(cbct))
+    after = _mean_distance(refined, truth, box)
+    assert before > 2.0
+    assert after < 0.2, (before, after)
+    assert grid.spacing == (1.5, 1.5, 1.5)
+    # at the truth it stays there; with the window clipped at air (-1000 HU) the CBCT's noisy air biases the pose
+    stay, _ = refine_native(ct, cbct, truth, cylindrical_fov_mask(cbct))
+    assert _mean_distance(stay, truth, box) < 0.1
+    clipped, _ = refine_native(ct, cbct, truth, cylindrical_fov_mask(cbct), hu_range=(-1000.0, 2000.0))
+    assert _mean_distance(clipped, truth, box) > 0.2
+
+
+def test_a_constant_bias_term_keeps_the_pose_under_a_cbct_hu_offset():
+    """A CBCT 300 HU brighter than the CT (a calibration offset, common on real CBCTs), started at the truth: with
+    a constant bias term (``native_bias_degree=0``, the fine stage's 2 includes it) the last level stays at the truth
+    (0.03 mm, as without an offset); without a bias term the offset pulls the pose (0.10 mm here, growing with the
+    offset: 0.05 mm at 150 HU)."""
+    iso = np.array([10.0, -20.0, 5.0])
+    truth_iso = [6.0, -3.0, 4.0, 4.0, -3.0, 5.0]
+    ct, cbct, truth = _pair(truth_iso, iso)
+    cbct = sitk.Threshold(cbct + 300.0, -5000.0, 5000.0, 0.0)  # the offset everywhere in the scan
+    box = np.stack(np.meshgrid(*[np.linspace(-50, 50, 5)] * 3, indexing="ij"), -1).reshape(-1, 3) + iso
+    fov = cylindrical_fov_mask(cbct)
+    constant, _ = refine_native(ct, cbct, truth, fov, bias_degree=0)
+    none, _ = refine_native(ct, cbct, truth, fov, bias_degree=-1)
+    assert _mean_distance(constant, truth, box) < 0.1
+    assert _mean_distance(none, truth, box) > 2 * _mean_distance(constant, truth, box)
+
+
+def test_registrar_passes_its_native_bias_degree_to_the_last_level(monkeypatch):
+    """The bundle's degrees reach refine_native: native_bias_degree (0) over the whole field of view,
+    native_bias_degree_roi (2) with a match region; a registrar built with other degrees uses them (the region one
+    defaults to the whole-FOV one); degrees below -1 are refused."""
+    import pytest
+
+    import monai_rigidreg.registration.registrar as reg_mod
+    from monai_rigidreg.core.errors import InputError
+
+    seen = []
+
+    def record(*args, **kwargs):
+        seen.append(kwargs["bias_degree"])
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(reg_mod, "refine_native", record)
+    for (whole, roi), registrar in (
+        ((0, 2), reg_mod.RigidRegistrar.from_bundle(device="cpu")),
+        ((1, 1), reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=1,
+                                                    native_bias_degree_roi=None)),
+        ((-1, 2), reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=-1)),
+    ):
+        assert (registrar.native_bias_degree, registrar.native_bias_degree_roi) == (whole, roi)
+        for region, degree in ((False, whole), (True, roi)):
+            with pytest.raises(RuntimeError, match="stop"):
+                registrar._native(None, None, np.eye(4), None, [], None, region=region)
+            assert seen[-1] == degree
+    with pytest.raises(InputError, match="native_bias_degree"):
+        reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=-2)
+    # the local-contrast scale: the bundle's 4 mm, or the fine stage's own (16 mm) when None; <= 0 refused
+    sigmas = []
+
+    def record_sigma(*args, **kwargs):
+        sigmas.append(kwargs["highpass_sigma_mm"])
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(reg_mod, "refine_native", record_sigma)
+    shipped = reg_mod.RigidRegistrar.from_bundle(device="cpu")
+    own = reg_mod.RigidRegistrar.from_bundle(device="cpu", native_highpass_sigma_mm=None)
+    for registrar in (shipped, own):
+        with pytest.raises(RuntimeError, match="stop"):
+            registrar._native(None, None, np.eye(4), None, [], None)
+    assert sigmas == [4.0, own.network.fine_stage.highpass_sigma_mm] and sigmas[1] == 16.0
+    with pytest.raises(InputError, match="native_highpass_sigma_mm"):
+        reg_mod.RigidRegistrar.from_bundle(device="cpu", native_highpass_sigma_mm=0.0)
+    with pytest.raises(InputError, match="native_bias_degree_roi"):
+        reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree_roi=-3)
+
+
+@pytest.mark.parametrize("spacing", [(1.875, 1.875, 1.875), (1.0, 1.5, 2.5)])
+def test_support_reach_holds_every_voxel_the_moved_support_covers(spacing):
+    # every voxel where the support warped by a motion within the reach covers (> 0.999, as the steps count it) is a
+    # candidate; motions just past the reach can cover voxels outside (the reach is not loose by much)
+    grid = Grid.centered((40, 36, 32), spacing, (0.0, 0.0, 0.0))
+    idx = torch.meshgrid(*[torch.arange(n, dtype=torch.float32) - (n - 1) / 2 for n in grid.size], indexing="ij")
+    fov = ((idx[0] * spacing[0]) ** 2 + (idx[1] * spacing[1]) ** 2 < 30.0**2).float()[None, None]  # a cylinder
+    radius = [max(1, round(8.0 / s)) for s in spacing]
+    support = erode(fov, radius)
+    cand, reach = support_reach(fov, radius, spacing, None)
+    assert cand.dtype == torch.bool and cand.shape == fov.shape
+    assert torch.equal(cand, fov > 0)
+    assert reach == pytest.approx(min((r + 0.5) * s for r, s in zip(radius, spacing)))
+    rng = np.random.default_rng(0)
+    corners = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)]) * (np.asarray(grid.size) - 1)
+    corners = corners * np.asarray(spacing) + np.asarray(grid.origin)
+    outside = 0
+    for k in range(40):
+        p = rng.uniform(-1, 1, 6) * [1, 1, 1, 0.2, 0.2, 0.2]  # mostly translation: the corners move ~ the inside
+        target = reach * (rng.uniform(0.7, 0.999) if k < 30 else rng.uniform(1.3, 2.0))
+        for _ in range(8):  # scaled until the farthest corner moves target mm (within 1 %)
+            m = params_to_matrix(p)
+            moved = np.linalg.norm(transform_points(m, corners) - corners, axis=1).max()
+            p = p * target / moved
+        m = params_to_matrix(p)
+        moved = np.linalg.norm(transform_points(m, corners) - corners, axis=1).max()
+        covered = warp_volume(support, torch.as_tensor(m)[None], grid, grid) > 0.999
+        if moved < reach:
+            assert not (covered & ~cand).any(), (k, moved, reach)
+        else:
+            outside += int(bool((covered & ~cand).any()))
+    assert outside >= 1  # past the reach the guarantee is gone
+    weight = torch.ones_like(fov)
+    weight[..., :5] = 0.0
+    assert not support_reach(fov, radius, spacing, weight)[0][..., :5].any()
+
+
+def test_refine_native_sums_over_the_field_of_view_only_where_it_leaves_enough_out(monkeypatch):
+    # the candidates go to the steps where they are at most CANDIDATE_SHARE_MAX of the grid (a cylinder in its box),
+    # not where the field of view fills the grid (the dense steps are cheaper there); the estimate is the same
+    import monai_rigidreg.registration.last_level as precision
+
+    iso = np.array([10.0, -20.0, 5.0])
+    truth_iso = [2.0, -1.0, 1.5, 1.0, -0.5, 1.0]
+    ct, cbct, truth = _pair(truth_iso, iso)
+    seen = []
+    real = precision.gauss_newton_align
+
+    def spy(*args, **kwargs):
+        cand = kwargs.get("candidates")
+        seen.append(None if cand is None else float(cand.float().mean()))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(precision, "gauss_newton_align", spy)
+    cylinder = cylindrical_fov_mask(cbct)
+    everywhere = sitk.Cast(cbct * 0 + 1, sitk.sitkUInt8)
+    refined, _ = refine_native(ct, cbct, np.eye(4), cylinder)
+    full, _ = refine_native(ct, cbct, np.eye(4), everywhere)
+    assert seen[0] is not None and seen[0] <= precision.CANDIDATE_SHARE_MAX
+    assert seen[1] is None
+    monkeypatch.setattr(precision, "CANDIDATE_SHARE_MAX", 0.0)  # the same case with the dense steps
+    dense, _ = refine_native(ct, cbct, np.eye(4), cylinder)
+    assert seen[2] is None
+    box = np.stack(np.meshgrid(*[np.linspace(-50, 50, 5)] * 3, indexing="ij"), -1).reshape(-1, 3) + iso
+    assert _mean_distance(refined, dense, box) < 1e-4
+    assert _mean_distance(refined, truth, box) < 0.3 and _mean_distance(full, truth, box) < 0.5

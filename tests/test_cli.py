@@ -1,0 +1,74 @@
+"""The command line as a whole (monai_rigidreg.cli): device strings refused up front, exit codes documented in every
+help and the README, internal failures in one line.
+
+Split from the former tests/test_reliability.py (same assertions).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from conftest import last_line, listing, run_cli
+
+from monai_rigidreg.cli import EXIT_CODES, main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_bad_device_strings_are_refused_before_any_work(pair, tmp_path, capsys):
+    out = tmp_path / "out"
+    for args in (["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir", out],
+                 ["demo", "--output-dir", out]):
+        code, err = run_cli(capsys, [*args, "--device", "gpu7"])
+        assert code == 2 and "device 'gpu7' is not a device name (use auto, cpu, cuda or cuda:N)" in last_line(err)
+        assert "Traceback" not in err
+    datalist = tmp_path / "one.json"
+    datalist.write_text(json.dumps({"training": [{"fixed": pair["fixed"], "moving": pair["moving"],
+                                                  "params": [0.0] * 6}]}))
+    code, err = run_cli(capsys, ["evaluate", "--datalist", datalist, "--output-dir", out, "--device", "gpu7"])
+    assert code == 2 and "'gpu7' is not a device name" in last_line(err)
+    assert listing(tmp_path) == ["one.json"]
+
+
+def test_exit_codes_are_documented_in_every_help_and_the_readme(capsys):
+    for command in ("simulate", "train", "register", "evaluate", "demo"):
+        with pytest.raises(SystemExit) as info:
+            main([command, "--help"])
+        assert info.value.code == 0
+        text = " ".join(capsys.readouterr().out.split())
+        for code in EXIT_CODES:
+            assert f" {code} " in text.split("exit status:")[1], (command, code)
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = readme.split("### Exit codes", 1)[1].split("\n#", 1)[0]
+    for code in EXIT_CODES:
+        assert f"| {code} |" in section, code
+    assert main([]) == 2  # no command: a usage error, as argparse's own
+    with pytest.raises(SystemExit) as info:
+        main(["register", "--fixed"])
+    assert info.value.code == 2
+
+
+def test_internal_failures_are_one_line_with_exit_1_and_file_system_errors_exit_2(monkeypatch, capsys):
+    import monai_rigidreg.registration.register_command as register_cli
+
+    args = ["register", "--fixed", "ct", "--moving", "cbct", "--output-dir", "out"]
+
+    def bug(_):
+        raise ZeroDivisionError("float division by zero")
+
+    monkeypatch.setattr(register_cli, "run", bug)
+    code, err = run_cli(capsys, args)
+    assert code == 1 and "Traceback" not in err
+    assert last_line(err).startswith("monai-rigidreg register: internal error: ZeroDivisionError: float division by "
+                                     "zero (a bug; rerun with -v")
+    code, err = run_cli(capsys, ["-v", *args])
+    assert code == 1 and "Traceback" in err
+
+    def denied(_):
+        raise PermissionError(13, "Permission denied", "/data/out")
+
+    monkeypatch.setattr(register_cli, "run", denied)
+    code, err = run_cli(capsys, args)
+    assert (code, last_line(err)) == (2, "monai-rigidreg register: error: /data/out: Permission denied")
