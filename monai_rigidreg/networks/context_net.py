@@ -141,7 +141,7 @@ class ContextCorrelationNet(nn.Module):
         norm: norm layer (MONAI's names; instance norm copes with CBCT/CT intensity differences).
         feat_channels: matching feature widths of the (coarse, 8 mm, 4 mm) levels.
         radius: local search radius in cells of the (8 mm, 4 mm) levels.
-        temperature: initial softmax temperature on cosine similarities (the coarse match and the match weights).
+        temperature: initial softmax temperature on cosine similarities (each level learns its own).
         passes: passes of the (8 mm, 4 mm) levels.
         context_factor: the context grid's spacing over the network grid's (the coarse level's grid).
         context_size: the context grid in voxels (default: ``grid_size``: twice the extent at ``context_factor`` 2).
@@ -215,7 +215,8 @@ class ContextCorrelationNet(nn.Module):
         self.lateral4 = nn.Conv3d(c1, f4, 1)
         self.top4 = nn.Conv3d(c2, f4, 1)
         self.weight4 = _weight_head(2 * f4)
-        self.log_temperature = nn.Parameter(torch.tensor(float(temperature)).log())
+        # one softmax temperature per level: the levels choose among 4096, 125 and 27 candidates
+        self.log_temperature = nn.Parameter(torch.full((3,), float(temperature)).log())
         self.grid = Grid.centered(self.grid_size, self.grid_spacing)
         self.context_grid = Grid.centered(self.context_size, [s * self.context_factor for s in self.grid_spacing])
         f = self.context_factor
@@ -260,7 +261,7 @@ class ContextCorrelationNet(nn.Module):
         fc = self._encode(self.coarse_encoder, context)[-1]
         pm = F.normalize(self.coarse_project(fm).flatten(2), dim=1)  # [B, C, Nm]
         pc = F.normalize(self.coarse_project(fc).flatten(2), dim=1)  # [B, C, Nc]
-        logits = torch.bmm(pm.transpose(1, 2), pc) * self.log_temperature.exp()  # [B, Nm, Nc]
+        logits = torch.bmm(pm.transpose(1, 2), pc) * self.log_temperature[0].exp()  # [B, Nm, Nc]
         prob = torch.softmax(logits, dim=-1)
         matched = (prob @ self.cells_context.to(prob.dtype)).to(torch.float64)  # [B, Nm, 3] CT positions
         weight = torch.sigmoid(self.coarse_weight(fm)).flatten(1) * prob.max(-1).values
@@ -288,7 +289,7 @@ class ContextCorrelationNet(nn.Module):
                fixed_weight: torch.Tensor | None, fixed: torch.Tensor, warped: torch.Tensor
                ) -> tuple[torch.Tensor, dict[str, Any]]:
         b = warped.shape[0]
-        scale = self.log_temperature.exp()
+        scale = self.log_temperature[1 if level == 8 else 2].exp()
         if level == 8:
             radius, stride, head = self.radius[0], 4, self.weight8
             fm = self.project8(fm_feats[1])
