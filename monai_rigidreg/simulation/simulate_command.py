@@ -46,8 +46,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument(
         "--phantom",
         default="shepp-logan",
-        metavar="shepp-logan|shepp-logan-asym|random|PATH",
-        help="built-in phantom or a CT (NIfTI file or DICOM directory, HU); default shepp-logan",
+        metavar="shepp-logan|shepp-logan-asym|random|synth|PATH",
+        help="a built-in phantom (shepp-logan, shepp-logan-asym, random: random ellipsoids, synth: synthetic anatomy) "
+        "or a CT (NIfTI, MHA, NRRD file or DICOM folder, HU); default shepp-logan",
     )
     p.add_argument("--protocol", default="paper", choices=("paper", "random"), help="motion protocol (default paper)")
     p.add_argument("--num-cases", type=int, default=None, metavar="N", help="number of cases (default: whole protocol)")
