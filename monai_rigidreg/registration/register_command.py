@@ -62,7 +62,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="soft: all tissue (default); bone: the CT's bone and a few mm around it")
     p.add_argument("--no-native-level", action="store_true",
                    help="skip the last Gauss-Newton steps over the whole CBCT field of view at the inputs' resolution "
-                   "(on by default; see the README for what it changes)")
+                   "(on by default; docs/usage.md says what it changes)")
     p.add_argument("--keep-couch", action="store_true",
                    help="keep the couches in the match (by default the CT's tissue outside its body, the couch, "
                    "counts as air and carries no match weight, so the treatment couch in the CBCT meets none either: "
