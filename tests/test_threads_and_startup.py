@@ -154,6 +154,32 @@ def test_adaptive_threads_without_a_reading_keeps_the_count(monkeypatch):
     assert device.busy_cores(samples=3, interval_s=0.0) == 1
 
 
+def test_top_level_help_imports_neither_torch_nor_monai():
+    """``monai-rigidreg --help``, ``monai-rigidreg`` alone and every sub-command's ``--help`` answer without torch or
+    MONAI (they took 6-9 s on 2 cores when the parsers imported the simulator, the training stack and the evaluation):
+    every sub-command is still listed, and ``simulate --help`` names every built-in phantom."""
+    from monai_rigidreg.cli import COMMANDS
+    from monai_rigidreg.simulation.phantoms import PHANTOMS
+
+    code = ("import sys, contextlib, io; from monai_rigidreg.cli import main\n"
+            "for argv in (['--help'], [], *([c, '--help'] for c in sys.argv[1:])):\n"
+            "    out = io.StringIO()\n"
+            "    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):\n"
+            "        try:\n            code = main(argv)\n        except SystemExit as e:\n            code = e.code\n"
+            "    print(repr(out.getvalue()), code)\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'monai', 'SimpleITK', 'numpy')))")
+    done = subprocess.run([sys.executable, "-c", code, *COMMANDS], capture_output=True, text=True, check=True)
+    *helps, imported = done.stdout.strip().splitlines()
+    assert imported == "[]"
+    top, bare, *commands = [(eval(text), int(code)) for text, code in (h.rsplit(" ", 1) for h in helps)]  # noqa: S307
+    assert top[1] == 0 and bare[1] == 2  # no command: a usage error, with the help on stderr
+    for name in COMMANDS:
+        assert name in top[0] and name in bare[0]
+    assert all(code == 0 for _, code in commands)
+    simulate = " ".join(commands[list(COMMANDS).index("simulate")][0].split())
+    assert all(name in simulate for name in PHANTOMS)
+
+
 def test_version_and_package_import_do_not_import_torch():
     """``import monai_rigidreg`` and ``monai-rigidreg --version`` import neither torch nor MONAI (the public names
     load on first use); the geometry names still resolve, to the geometry module's own objects."""

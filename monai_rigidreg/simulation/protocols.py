@@ -10,7 +10,8 @@ and a ``group`` label the evaluation report groups by:
 * ``"multi"``: translations and rotations together (6 DoF);
 * ``"random"``: the ``random`` protocol (continuous uniform ranges);
 * ``"multi30"``: the ``multi30`` protocol, 6-DoF motions with ``|rx| = |ry| = |rz| = 30`` degrees (every sign
-  pattern) and translations of 5-15 mm on all three axes.
+  pattern) and translations of 5-15 mm on all three axes;
+* ``"given"``: a motion given by the caller (``simulate --motion``).
 
 ``condition`` names the reference study's table rows: ``"Translation (1.5 cm)"`` (15 mm translations, no
 rotation) and ``"Rotation (theta_x = 30 deg)"`` (``rx = +-30``, nothing else).
@@ -127,8 +128,9 @@ def protocol_cases(
     seed: int = 0,
     max_translation: float = 15.0,
     max_rotation: float = 30.0,
+    motion: Any = None,
 ) -> list[MotionCase]:
-    """Cases of a protocol.
+    """Cases of a protocol, or of one given motion.
 
     Args:
         protocol: ``"paper"`` or ``"random"``.
@@ -138,7 +140,13 @@ def protocol_cases(
         seed: seed of the ``random`` protocol.
         max_translation: ``random`` range, mm.
         max_rotation: ``random`` range, degrees.
+        motion: ``(tx, ty, tz, rx, ry, rz)``: every case has this motion (group ``"given"``; ``num_cases``
+            default 1, each case its own CBCT realisation) and the protocol is not used.
     """
+    if motion is not None:
+        if num_cases is not None and num_cases < 1:
+            raise ValueError(f"num_cases must be >= 1, got {num_cases}")
+        return [_case(list(motion), "given")] * (1 if num_cases is None else num_cases)
     if protocol == "random":
         return random_cases(64 if num_cases is None else num_cases, seed, max_translation, max_rotation)
     if protocol not in ("paper", "multi30"):

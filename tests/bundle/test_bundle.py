@@ -219,7 +219,9 @@ def test_train_with_default_folders_leaves_the_installed_weights_alone_and_runs_
     (stub / "__init__.py").write_text("raise ImportError('simulated: tensorboard is not installed')\n")
     work = tmp_path / "work"
     work.mkdir()
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(stub.parent)}
+    # the stub first, then whatever the caller's PYTHONPATH holds (a checkout under test that is not the installed one)
+    env = {**os.environ, "OMP_NUM_THREADS": "1",
+           "PYTHONPATH": os.pathsep.join([str(stub.parent), *filter(None, [os.environ.get("PYTHONPATH")])])}
     sets = [*TINY_NET, "cascade_steps=1", "log_every=1"]
     cmd = [sys.executable, "-m", "monai_rigidreg.cli", "train", "--datalist", str(tiny_dataset), "--val-datalist",
            str(tiny_dataset), "--epochs", "1", "--epoch-length", "1", "--num-workers", "0", "--set", *sets]
