@@ -1,8 +1,10 @@
 """Run registration methods over a datalist with known motion and report the paper's tables.
 
 Methods: ``network`` (the bundle's model, cascade steps as configured), ``network+refine`` (network, then
-SimpleITK Mattes MI from its estimate), ``sitk`` (classical SimpleITK, geometry-centred initialisation) and
-``elastix`` (itk-elastix's default rigid map, optional extra). All are measured on the same cases in one run.
+SimpleITK Mattes MI from its estimate), ``sitk`` (classical SimpleITK, geometry-centred initialisation),
+``elastix`` (itk-elastix's default rigid map, optional extra), and the peer tools ``ants`` (ANTs' rigid preset,
+``antspyx``) and ``greedy`` (``greedy -a -dof 6``, ``picsl-greedy``; both the ``bench`` extra,
+:mod:`monai_rigidreg.registration.peers`). All are measured on the same cases in one run.
 """
 
 from __future__ import annotations
@@ -34,16 +36,18 @@ from monai_rigidreg.evaluation.report import CaseResult, format_report, summariz
 from monai_rigidreg.io.staging import check_replaceable, staged_output_dir
 from monai_rigidreg.io.volumes import check_output_dir, load_volume
 from monai_rigidreg.registration.classical import elastix_available, register_elastix, register_sitk
+from monai_rigidreg.registration.peers import PEER_METHODS, peer_available, register_peer
 from monai_rigidreg.registration.registrar import RigidRegistrar
 
 __all__ = ["METHODS", "evaluate_datalist", "load_datalist", "body_points", "LoadedCase", "iter_cases"]
 
 logger = logging.getLogger(__name__)
 
-METHODS = ("network", "network-regression", "network+refine", "sitk", "elastix")
+METHODS = ("network", "network-regression", "network+refine", "sitk", "elastix", "ants", "greedy")
 """``network``: the shipped network (regression + fine stage); ``network-regression``: its learned regression alone
 (``register(..., fine_stage=False)``); ``network+refine``: the network then SimpleITK Mattes MI; ``sitk``, ``elastix``:
-the classical baselines from the identity."""
+the classical baselines from the identity; ``ants``, ``greedy``: the peer tools' rigid registrations from the
+identity (:mod:`~monai_rigidreg.registration.peers`)."""
 
 
 def load_datalist(path: str | Path, key: str | None = None) -> tuple[list[dict[str, Any]], Path]:
@@ -242,6 +246,9 @@ def evaluate_datalist(
     if "elastix" in methods:
         if not elastix_available():
             raise InputError("method 'elastix' needs itk-elastix: pip install 'monai-rigidreg[elastix]'")
+    for method in (m for m in methods if m in PEER_METHODS and not peer_available(m)):
+        raise InputError(f"method {method!r} needs {'antspyx' if method == 'ants' else 'picsl-greedy'}: pip install "
+                         "'monai-rigidreg[bench]'")
     if output_dir is None:
         return _evaluate_into(None, items, methods, registrar, progress, html, max_overlays, datalist)
     out = Path(output_dir)
@@ -300,6 +307,8 @@ def _run_method(method: str, fixed: sitk.Image, moving: sitk.Image, fov: sitk.Im
         return res.params, time.perf_counter() - t0, extra
     if method == "sitk":
         res = register_sitk(fixed, moving, center=center, moving_mask=fov)
+    elif method in PEER_METHODS:
+        res = register_peer(method, fixed, moving, center=center, moving_mask=fov)
     else:
         res = register_elastix(fixed, moving, center=center)  # elastix's default rigid map, as specified
     return res.params, time.perf_counter() - t0, {"stop": res.stop_condition}
