@@ -58,10 +58,27 @@ def test_register_command_builds_its_own_parser_only():
     assert _python(code) == "True"
 
 
+NOT_ON_THE_REGISTER_PATH = {
+    "numpy.ma": "np.percentile's np.unique imports it (the QC window: export.qc_figure.percentiles instead)",
+    "tqdm.auto": "the batch's progress bar (registration.pairs, imported for --datalist only; tqdm itself comes "
+                 "with torch.hub)",
+    "monai_rigidreg.registration.pairs": "the batch (--datalist)",
+    "monai_rigidreg.networks.context_net": "the network in training (networks/__init__ exports on first use)",
+    "monai_rigidreg.networks.rigid_net": "the reference design (ablation)",
+    "monai_rigidreg.networks.transformer": "training's spatial transformer",
+    "monai_rigidreg.evaluation": "the evaluation",
+    "monai_rigidreg.simulation": "the simulator",
+    "matplotlib": "the QC figure is drawn with Pillow",
+}
+"""Modules a one-pair ``monai-rigidreg register`` does not import, and why each is not needed
+(``python -X importtime``; ``benchmarks/README.md``)."""
+
+
 def test_register_command_runs_without_importing_monai(fast_pair, tmp_path):
     """The whole ``monai-rigidreg register`` (bundle, network, registration, every default output, QC figure
     included) imports no MONAI module: ``import monai`` alone costs about 6 s on 2 cores (the speed issue); nor
-    sympy, which torch imports on its first argument check of some functions (0.24 s; torch.unravel_index did).
+    sympy, which torch imports on its first argument check of some functions (0.24 s; torch.unravel_index did);
+    nor what one pair does not need (:data:`NOT_ON_THE_REGISTER_PATH`).
     The estimate is the shipped model's on the known motion (as in ``tests/test_register.py``)."""
     import json
 
@@ -72,8 +89,8 @@ def test_register_command_runs_without_importing_monai(fast_pair, tmp_path):
             f"rc = main(['register', '--fixed', {str(fast_pair['fixed'])!r}, '--moving', "
             f"{str(fast_pair['moving'])!r}, '--output-dir', {str(out)!r}, '--threads', '2', '-q']); "
             "print(rc, sorted(m for m in sys.modules if m == 'monai' or m.startswith('monai.')), "
-            "'sympy' in sys.modules)")
-    assert _python(code).splitlines()[-1] == "0 [] False"  # the command prints its result first
+            f"'sympy' in sys.modules, sorted(set({sorted(NOT_ON_THE_REGISTER_PATH)!r}) & set(sys.modules)))")
+    assert _python(code).splitlines()[-1] == "0 [] False []"  # the command prints its result first
     result = json.loads((out / "result.json").read_text())
     assert result["details"]["cpu_threads"] == 2  # --threads 2: exactly 2, whatever else runs (no adapting)
     assert {"registered.nii.gz", "qc.png", "transform.tfm"} <= {p.name for p in out.iterdir()}

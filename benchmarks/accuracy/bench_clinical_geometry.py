@@ -34,7 +34,9 @@ Each pair is registered by every method in the same run, with the volumes in mem
   where the CBCT's field of view lies at the identity, ``moving_mask=fov``);
 * ``sitk``: ``monai_rigidreg.registration.classical.register_sitk`` (Mattes MI, masked to the field of view);
 * ``elastix-roi`` (optional): ``register_elastix`` with the CT samples restricted to the target box (deformed pairs
-  only; elastix as a physicist would use it for a target-region match).
+  only; elastix as a physicist would use it for a target-region match);
+* ``ants``, ``greedy`` (optional, the ``bench`` extra): the peer tools, ``monai_rigidreg.registration.peers``
+  (``moving_mask=fov``), each counted only after its convention check passes.
 
 Errors:
 
@@ -79,14 +81,24 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.bench_common import Tee, ct_name, end_run, find_cts, script_parser, set_threads, signed, start_run
+from benchmarks.bench_common import (
+    Tee,
+    checked_peers,
+    ct_name,
+    end_run,
+    find_cts,
+    script_parser,
+    set_threads,
+    signed,
+    start_run,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 
 HELD_OUT_CTS = ("thorax_4dct_phase00_itkelastix.nii.gz", "head_tigre_ct.nii.gz")
 TRAINING_CTS = ("abdomen_pelvis_totalsegmentator_example_ct.nii.gz",)
 DEFAULT_CTS = HELD_OUT_CTS + TRAINING_CTS
-METHODS = ("network", "network-regression", "elastix", "sitk", "elastix-roi")
+METHODS = ("network", "network-regression", "elastix", "sitk", "elastix-roi", "ants", "greedy")
 DEFAULT_METHODS = ("network", "elastix", "sitk")
 GROUPS = ("small", "large", "deformed")
 SUCCESS_MM = 2.0
@@ -208,6 +220,10 @@ def run_method(method: str, ct: Any, case: Any, registrar: Any, roi_supported: b
         params = np.asarray(register_elastix(ct.image, case.cbct, center=c, moving_mask=mask).params)
     elif method == "sitk":
         params = np.asarray(register_sitk(ct.image, case.cbct, center=c, moving_mask=case.fov).params)
+    elif method in ("ants", "greedy"):
+        from monai_rigidreg.registration.peers import register_peer
+
+        params = np.asarray(register_peer(method, ct.image, case.cbct, center=c, moving_mask=case.fov).params)
     else:
         raise ValueError(method)
     out["time_s"] = time.perf_counter() - t0
@@ -461,7 +477,7 @@ def main() -> int:
     ap.add_argument("--results", type=Path, default=None, help="also write the printed text to FILE")
     ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=METHODS,
                     help=f"methods (default {' '.join(DEFAULT_METHODS)}; also network-regression, the learned "
-                         "network alone, and elastix-roi)")
+                         "network alone, elastix-roi, and the peer tools ants and greedy)")
     ap.add_argument("--device", default="cpu", help="device of the network and the simulation (default cpu)")
     ap.add_argument("--threads", type=int, default=2, help="torch, SimpleITK and ITK/elastix threads (default 2)")
     ap.add_argument("--bundle", type=Path, default=None, help="bundle directory (default: the shipped bundle)")
@@ -497,6 +513,7 @@ def main() -> int:
 
     bundle = str(args.bundle or "the shipped bundle")
     monitor, t_start = start_run(out, __spec__.name, args.threads, args.device, bundle)
+    methods = checked_peers(methods, out)
     spec = ClinicalCBCTSpec()
     out(f"methods: {' '.join(methods) or '(none: --simulate-only)'}; {args.cases_per_group} cases per group and CT, "
         f"seed {args.seed}; network roi= on deformed pairs: "

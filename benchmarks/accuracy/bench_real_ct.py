@@ -1,4 +1,5 @@
-"""Registration on real CTs held out from training: the learned regression alone, the shipped network, elastix.
+"""Registration on real CTs held out from training: the learned regression alone, the shipped network, elastix, and
+(``--methods ... ants greedy``) the peer tools ANTs and greedy.
 
 The shipped network was trained on phantoms and one pelvis CT (``scripts/make_training_data.sh``). This benchmark
 simulates paired data from CTs it has never seen, by default the two held-out CTs of ``../shared/data``:
@@ -13,7 +14,9 @@ cone-beam CBCT of 64^3 at 2 mm (the paper's 128 mm interior field of view), with
 hardening. The paper protocol holds single-axis translations (5-15 mm) and rotations (10-30 degrees) and
 multi-axis motions up to 30 degrees. ``monai_rigidreg.evaluation.evaluate_datalist`` then registers every case with
 every method in the same run (evaluation outputs, with overlays of the failed cases, in
-``<output-dir>/eval/<name>``).
+``<output-dir>/eval/<name>``). A peer tool (``ants``: ANTs' rigid preset, ``antspyx``; ``greedy``: ``greedy -a -dof
+6``, ``picsl-greedy``; the ``bench`` extra) counts only after its convention check passes: it recovers the known
+motion of a small pair through its own output (``monai_rigidreg.registration.peers.check_convention``, printed first).
 
 Printed, per CT and over all of them: per method n, mean and median TRE (mm, over the body points the evaluation
 uses), success rate (TRE < 2 mm), the share of cases under 12 mm, the per-axis mean absolute errors, the median time
@@ -41,7 +44,17 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_common import Tee, ct_name, end_run, find_cts, script_parser, set_threads, signed, start_run
+from benchmarks.bench_common import (
+    Tee,
+    checked_peers,
+    ct_name,
+    end_run,
+    find_cts,
+    script_parser,
+    set_threads,
+    signed,
+    start_run,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -183,7 +196,8 @@ def main() -> int:
     ap.add_argument("--output-dir", type=Path, default=Path("bench_out/real_ct"),
                     help="data in DIR/<name>, evaluation outputs in DIR/eval/<name> (default bench_out/real_ct)")
     ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS),
-                    help=f"evaluation methods (default {' '.join(DEFAULT_METHODS)}; also sitk, network+refine)")
+                    help=f"evaluation methods (default {' '.join(DEFAULT_METHODS)}; also sitk, network+refine, and "
+                         "the peer tools ants and greedy)")
     ap.add_argument("--device", default="cpu", help="device of the network (default cpu)")
     ap.add_argument("--bundle", type=Path, default=None,
                     help="bundle directory of the network methods (default: the shipped bundle)")
@@ -220,6 +234,7 @@ def main() -> int:
               + (f"; fine passes {args.fine_passes}" if args.fine_passes is not None else "")
               + (f"; subcell {args.subcell}" if args.subcell is not None else ""))
     monitor, t_start = start_run(out, __spec__.name, args.threads, args.device, bundle)
+    methods = checked_peers(methods, out)  # ANTs reads ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS (set_threads) here
     out(f"methods: {' '.join(methods)}; {args.num_cases} {args.protocol}-protocol cases per CT, seed {args.seed}; "
         f"simulation settings: {' '.join(sim_settings(args.cbct))}")
     out()

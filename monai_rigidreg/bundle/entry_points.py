@@ -105,18 +105,33 @@ def bundle_check_inputs(fixed: str | Path | None, moving: str | Path | None, out
 
 
 def bundle_evaluate(datalist: str | Path, methods: Any, output_dir: str | Path, registrar: RigidRegistrar,
-                    max_cases: Any = None, overwrite: Any = False) -> dict[str, Any]:
+                    max_cases: Any = None, overwrite: Any = False, sampler: Any = None) -> dict[str, Any]:
     """:func:`~monai_rigidreg.evaluation.evaluate.evaluate_datalist` for the bundle's ``evaluate.json``: prints the
-    report; a bad datalist, method or output folder ends the run with one line and exit status 2 (was a traceback)."""
-    from monai_rigidreg.evaluation.evaluate import evaluate_datalist
+    report; a bad datalist, method or output folder ends the run with one line and exit status 2 (was a traceback).
 
+    With ``sampler`` (``multi_gpu_evaluate.json``: a ``DistributedSampler`` over the datalist's items, under
+    ``torchrun``) this process registers the sampler's cases only and rank 0 merges every rank's results and writes
+    the one report (:func:`~monai_rigidreg.evaluation.distributed.evaluate_distributed`); rank 0 prints it.
+    """
     with bundle_errors():
         check_bundle_options({"overwrite": overwrite})
         if isinstance(methods, str) or not isinstance(methods, (list, tuple)):
             raise InputError(f"--methods must be a list, e.g. \"['network']\", got {methods!r}")
-        out = evaluate_datalist(datalist, list(methods), output_dir, registrar=registrar, max_cases=max_cases,
-                                overwrite=bool(overwrite))
-        print(out["report"])
+        if sampler is None:
+            from monai_rigidreg.evaluation.evaluate import evaluate_datalist
+
+            out = evaluate_datalist(datalist, list(methods), output_dir, registrar=registrar, max_cases=max_cases,
+                                    overwrite=bool(overwrite))
+            print(out["report"])
+            return out
+        import torch.distributed as dist
+
+        from monai_rigidreg.evaluation.distributed import evaluate_distributed
+
+        out = evaluate_distributed(datalist, list(methods), output_dir, registrar=registrar, sampler=sampler,
+                                   max_cases=max_cases, overwrite=bool(overwrite))
+        if not dist.is_initialized() or dist.get_rank() == 0:
+            print(out["report"])
         return out
 
 

@@ -103,10 +103,11 @@ def _run_pairs(args: argparse.Namespace) -> int:
     # monai_rigidreg.registration.registrar")
     from monai_rigidreg.registration.files import register_files
     from monai_rigidreg.registration.inputs import check_register_inputs
-    from monai_rigidreg.registration.pairs import RegistrationEvaluator, registration_pairs
     from monai_rigidreg.registration.registrar import RigidRegistrar
 
     if args.datalist is not None:
+        from monai_rigidreg.registration.pairs import RegistrationEvaluator, registration_pairs  # and tqdm: batch only
+
         return _run_batch(args, RigidRegistrar, RegistrationEvaluator, registration_pairs)
 
     # inputs, options and the output folder before the network is loaded (register_files checks them again, cheaply)
