@@ -20,6 +20,7 @@ from monai_rigidreg.core.geometry import Grid, params_to_matrix, transform_point
 from monai_rigidreg.evaluation.evaluate import body_points
 from monai_rigidreg.io import load_volume
 from monai_rigidreg.registration import RigidRegistrar, overlap
+from monai_rigidreg.registration.confidence import CONFIDENCE_THRESHOLD
 from monai_rigidreg.registration.inputs import swapped_reasons, truncated_cylinder
 
 
@@ -154,3 +155,54 @@ def test_a_cbct_like_cylinder_marks_the_fixed_image_as_the_cbct():
     assert swapped_reasons(cbct_like, big_ct) == ["box", "cylinder"]
     assert swapped_reasons(big_ct, cbct_like) == []
     assert swapped_reasons(ct_like, ct_like) == []  # equal boxes (a CBCT on the CT's grid) do not count
+
+
+# -- negative cases (real CTs; skipped without them) ----------------------------------------------------------------
+
+
+def _cbct_from(ct: sitk.Image, center_mm, size: int = 64, spacing: float = 2.0, rotation=None) -> sitk.Image:
+    """A CBCT-like volume cut from a CT in the image domain: a 128 mm cube at 2 mm about ``center_mm`` (the CT's
+    content rotated by ``rotation``, a 3x3 about the centre), air outside the inscribed cylinder."""
+    grid = Grid.centered((size,) * 3, (spacing,) * 3, np.asarray(center_mm, dtype=np.float64))
+    ref = sitk.Image([size] * 3, sitk.sitkFloat32)
+    ref.SetSpacing(grid.spacing)
+    ref.SetOrigin(tuple(float(v) for v in grid.origin))
+    tfm = sitk.AffineTransform(3)
+    if rotation is not None:
+        tfm.SetMatrix(tuple(np.asarray(rotation, dtype=np.float64).ravel()))
+        tfm.SetCenter(tuple(float(v) for v in center_mm))
+    out = sitk.Resample(ct, ref, tfm, sitk.sitkLinear, -1000.0)
+    from monai_rigidreg.registration.confidence import cylindrical_fov_mask
+
+    return sitk.Mask(out, cylindrical_fov_mask(out), outsideValue=-1000.0)
+
+
+def _recentred(image: sitk.Image, center) -> sitk.Image:
+    out = sitk.Image(image)
+    out.SetOrigin(tuple(np.asarray(image.GetOrigin()) + np.asarray(center) - Grid.from_sitk(image).center()))
+    return out
+
+
+@pytest.mark.parametrize("kind", ["other_patient", "other_region", "head_feet", "rot90"])
+def test_negative_cases_are_flagged_never_a_success(real_data_dir, shipped, kind):
+    """No right answer the registration can reach: it must say so. ``other_patient``: a head CT and a CBCT of another
+    head; ``other_region``: a head CT and a CBCT of a thorax (both re-centred on the CT); ``head_feet``: the CBCT of
+    the same thorax acquired feet first (its content turned 180 degrees about the vertical axis); ``rot90``: turned 90
+    degrees about the long axis. The fifth, an empty field of view, is refused (above)."""
+    head = load_volume(real_data_dir / "head_tigre_ct.nii.gz")
+    thorax = load_volume(real_data_dir / "thorax_4dct_phase00_itkelastix.nii.gz")
+    if kind == "other_patient":
+        other = load_volume(real_data_dir / "head_tcia_cptac_lscc_ct.nii.gz")
+        fixed, moving = head, _recentred(_cbct_from(other, Grid.from_sitk(other).center()), Grid.from_sitk(
+            head).center())
+    elif kind == "other_region":
+        fixed, moving = head, _recentred(_cbct_from(thorax, Grid.from_sitk(thorax).center()), Grid.from_sitk(
+            head).center())
+    else:
+        rotation = np.diag([-1.0, 1.0, -1.0]) if kind == "head_feet" else np.array([[0.0, -1, 0], [1, 0, 0],
+                                                                                   [0, 0, 1]])
+        fixed, moving = thorax, _cbct_from(thorax, Grid.from_sitk(thorax).center(), rotation=rotation)
+    res = shipped(fixed, moving, resample_moving=False)
+    assert res.flagged, (kind, res.confidence, res.details["signals"])
+    calibration = res.details["confidence_calibration"]
+    assert res.confidence < (calibration["flag_below"] if calibration else CONFIDENCE_THRESHOLD)
