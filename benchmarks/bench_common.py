@@ -98,6 +98,36 @@ def set_threads(threads: int) -> None:
 
 
 
+def checked_peers(methods: list[str], out: Tee) -> list[str]:
+    """``methods`` less the peer tools (``ants``, ``greedy``) that are not installed or fail their convention check
+    (:func:`monai_rigidreg.registration.peers.check_convention`: the known motion of a small pair recovered through
+    the tool's own output): a peer's numbers count only after the check passes. Each check prints one line."""
+    from monai_rigidreg.registration.peers import CONVENTION_TOLERANCE, PEER_METHODS, check_convention, peer_available
+
+    kept = []
+    for m in methods:
+        if m not in PEER_METHODS:
+            kept.append(m)
+            continue
+        if not peer_available(m):
+            out(f"skipped method {m}: {'antspyx' if m == 'ants' else 'picsl-greedy'} is not installed "
+                "(pip install 'monai-rigidreg[bench]')")
+            continue
+        from importlib.metadata import version
+
+        dist = "antspyx" if m == "ants" else "picsl-greedy"
+        t = time.perf_counter()
+        check = check_convention(m)
+        errors = " ".join(f"{e:.2f}" for e in check["errors"])
+        verdict = "passed" if check["ok"] else "FAILED, the method is left out"
+        out(f"convention check of {m} ({dist} {version(dist)}): known motion {signed(np.asarray(check['truth']))}, "
+            f"errors {errors} (tolerance {CONVENTION_TOLERANCE[0]:g} mm / {CONVENTION_TOLERANCE[1]:g} degrees): "
+            f"{verdict} ({time.perf_counter() - t:.1f} s)")
+        if check["ok"]:
+            kept.append(m)
+    return kept
+
+
 def median_time(fn: Callable[[], object], repeats: int, warm_up: bool = False) -> float:
     """Median wall seconds of ``repeats`` calls of ``fn`` (after one untimed call with ``warm_up``: the process's
     first-use costs)."""

@@ -8,6 +8,7 @@ collects them, sets up logging, and turns failures into one readable line and th
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import logging
 import os
@@ -44,6 +45,7 @@ COMMANDS = {
     "register": "monai_rigidreg.registration.register_command",
     "evaluate": "monai_rigidreg.evaluation.evaluate_command",
     "demo": "monai_rigidreg.demo",
+    "serve": "monai_rigidreg.serve.cli",
 }
 COMMAND_MODULES = tuple(COMMANDS.values())
 
@@ -60,10 +62,10 @@ def build_parser(command: str | None = None, with_commands: bool = True) -> argp
     """The argument parser with every available sub-command, or with ``command`` alone (``with_commands=False``:
     none, the global options only, e.g. for ``--version``).
 
-    Importing a sub-command's module imports what it needs (the simulator pulls in MONAI's transforms, training
-    ignite): ``monai-rigidreg register`` builds its own parser only, so it does not pay for the others' imports
-    (``python -X importtime -m monai_rigidreg.cli register --help``; ``benchmarks/speed/bench_speed.py`` times the
-    command).
+    A sub-command's module defines its parser without its stack (torch, MONAI, the simulator are imported in its
+    ``run``), so ``monai-rigidreg --help`` imports neither torch nor MONAI; ``monai-rigidreg register`` builds its
+    own parser only (``python -X importtime -m monai_rigidreg.cli --help``; ``benchmarks/speed/bench_speed.py`` times
+    the command).
     """
     parser = argparse.ArgumentParser(
         prog="monai-rigidreg",
@@ -97,6 +99,24 @@ def _add_verbosity(parser: argparse.ArgumentParser, defaults: bool) -> None:
                         help="less log output (-q: warnings and errors only, -qq: errors only)")
 
 
+def _unrecognized(parser: argparse.ArgumentParser, command: str | None, extra: Sequence[str]) -> None:
+    """Exit as argparse does for unrecognized arguments, with the usage of the sub-command they were given to and,
+    for an option, the closest option it has (``register --fixd``: did you mean --fixed?)."""
+    target = parser
+    for action in parser._actions:  # noqa: SLF001 - argparse keeps its sub-parsers in a private action
+        if isinstance(action, argparse._SubParsersAction) and command in action.choices:
+            target = action.choices[command]
+    options = [o for a in target._actions for o in a.option_strings if o.startswith("--")]  # noqa: SLF001
+    hints = []
+    for word in extra:
+        if not word.startswith("--"):
+            continue
+        close = difflib.get_close_matches(word.split("=", 1)[0], options, n=1, cutoff=0.75)
+        if close:
+            hints.append(f"{word}: did you mean {close[0]}?")
+    target.error(f"unrecognized arguments: {' '.join(extra)}" + (f" ({'; '.join(hints)})" if hints else ""))
+
+
 def log_level(verbose: int, quiet: int) -> int:
     """The logging level for ``-v``/``-q`` counts: info by default, debug with ``-v``, warning with ``-q``,
     error with ``-qq``."""
@@ -108,12 +128,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``monai-rigidreg`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
     command = _command_in(argv)
-    # --version among options alone needs no sub-command: building them all imports torch and MONAI (about 4 s on
-    # 2 cores); with a word that is no command, or --help, argparse needs them to say what the commands are
+    # --version among options alone needs no sub-command parser; with a word that is no command, or --help,
+    # argparse needs them all to say what the commands are (their modules import no torch or MONAI: the parsers
+    # are built in about 0.1 s, tests/test_threads_and_startup.py)
     version_only = ("--version" in argv and all(a.startswith("-") for a in argv)
                     and not {"-h", "--help"} & set(argv))
     parser = build_parser(command, with_commands=not version_only)
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # a mistyped option: the sub-command's usage, not the top level's (argparse's own error, exit 2)
+        _unrecognized(parser, getattr(args, "command", None), extra)
     logging.basicConfig(
         level=log_level(args.verbose, args.quiet),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",

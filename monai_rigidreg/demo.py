@@ -14,10 +14,7 @@ import math
 import time
 from pathlib import Path
 
-import numpy as np
-
 from monai_rigidreg.core.errors import InputError
-from monai_rigidreg.core.geometry import PARAM_NAMES, parameter_errors, target_registration_error
 
 __all__ = ["add_parser", "run", "run_demo", "DEMO_MOTION", "DEMO_SIMULATION"]
 
@@ -62,11 +59,15 @@ def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=D
     non-empty ``output_dir`` is refused unless ``overwrite``. Everything is written into a hidden sibling folder
     and moved into place when complete, so a failed or interrupted demo leaves nothing behind.
     """
-    # imported here: this module also defines the `demo` sub-command's parser, built for every `monai-rigidreg`
-    # call, and the registration stack pulls in MONAI (seconds; see register_cli.run)
+    # imported here: this module also defines the `demo` sub-command's parser, which `monai-rigidreg --help` builds,
+    # and the simulator and the registration stack import torch (seconds)
+    import numpy as np
+
     from monai_rigidreg.core.device import resolve_device
+    from monai_rigidreg.core.geometry import PARAM_NAMES, parameter_errors, target_registration_error
     from monai_rigidreg.evaluation.evaluate import body_points
     from monai_rigidreg.export.outputs import write_outputs
+    from monai_rigidreg.export.record import complete_record
     from monai_rigidreg.io.staging import staged_output_dir
     from monai_rigidreg.io.volumes import load_volume
     from monai_rigidreg.registration.registrar import RigidRegistrar
@@ -90,6 +91,9 @@ def run_demo(output_dir: str | Path, phantom: str = "shepp-logan-asym", motion=D
         registrar = RigidRegistrar.from_bundle(bundle, device=device)
         result = registrar(fixed, moving, refine=refine)
         logger.info("demo 3/3: writing the outputs and the QC figure")
+        # the audit trail names the pair where it ends up; the couch shifts at the CBCT's centre, HFS assumed
+        complete_record(result, moving, *(final / Path(sim[k]).relative_to(out) for k in ("fixed", "moving")),
+                        bundle=registrar.source, device=str(registrar.device))
         paths = write_outputs(result, fixed, moving, out / "registration", overwrite=True,
                               names=(Path(sim["fixed"]).name, Path(sim["moving"]).name))
         truth = np.asarray(sim["params"], dtype=np.float64)

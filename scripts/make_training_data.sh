@@ -33,7 +33,8 @@ if [ -f "$SHARED/abdomen_pelvis_totalsegmentator_example_ct.nii.gz" ]; then
     $SIM --output-dir "$DATA/abdomen" --phantom "$SHARED/abdomen_pelvis_totalsegmentator_example_ct.nii.gz" \
         --num-cases 12 --seed 400 --set simct_size=128 --set simct_spacing=3.0 --set simct_views=360 \
         --set cbct_views=180 --set cbct_size=80 --set cbct_spacing=3.0 --set projection_spacing=3.0 \
-        --set photons=1e6 --set electronic_noise=2.0 --set scatter_to_primary=0.2  # pelvis: clinical-like dose
+        --set photons=1e6 --set electronic_noise=2.0 --set scatter_to_primary=0.2 \
+        --set ct_frame=False  # pelvis: clinical-like dose; centred on the origin, as the shipped weights saw it
 fi
 # validation: the paper protocol on the stock phantom (held out), interior 128 mm FOV as in the paper
 monai-rigidreg simulate --no-progress --output-dir "$DATA/val_paper" --phantom shepp-logan --protocol paper \
@@ -43,7 +44,9 @@ import json, sys
 from pathlib import Path
 root = Path(sys.argv[1])
 items = []
-for sub in sorted(p for p in root.iterdir() if p.is_dir() and p.name != "val_paper" and "interior" not in p.name):
+# the simulate datasets only (scripts/make_clinical_training_data.py writes its own datalist under clinical/)
+for sub in sorted(p for p in root.iterdir() if p.is_dir() and p.name not in ("val_paper", "clinical")
+                  and "interior" not in p.name and (p / "dataset.json").is_file()):
     for it in json.loads((sub / "dataset.json").read_text())["training"]:
         for k in ("fixed", "moving", "moving_fov"):
             it[k] = f"{sub.name}/{it[k]}"

@@ -72,3 +72,18 @@ def test_internal_failures_are_one_line_with_exit_1_and_file_system_errors_exit_
     monkeypatch.setattr(register_cli, "run", denied)
     code, err = run_cli(capsys, args)
     assert (code, last_line(err)) == (2, "monai-rigidreg register: error: /data/out: Permission denied")
+
+
+def test_a_mistyped_option_gets_the_sub_commands_usage_and_the_closest_option(capsys):
+    """``register --fixd`` printed the top-level usage, which does not list register's options."""
+    for argv, usage, hint in ((["register", "--fixd", "ct.nii.gz", "--output-dir", "out"], "monai-rigidreg register",
+                               "did you mean --fixed?"),
+                              (["simulate", "--output-dir", "o", "--phantm", "synth"], "monai-rigidreg simulate",
+                               "did you mean --phantom?"),
+                              (["--bogus"], "monai-rigidreg [-h]", None)):
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and err.startswith(f"usage: {usage}"), err
+        assert "unrecognized arguments" in last_line(err)
+        assert (hint in last_line(err)) if hint else "did you mean" not in err

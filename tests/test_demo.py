@@ -35,6 +35,11 @@ def test_demo_promise_holds_on_a_faster_simulation(tmp_path, capsys):
     size = DEMO_SIMULATION["simct_size"]
     assert sitk.ReadImage(str(out / "data" / "simct.nii.gz")).GetSize() == (size,) * 3
     assert (out / "registration" / "transform.tfm").is_file()
+    # result.json as the register command's: couch shifts (HFS assumed) and the audit trail naming the pair
+    record = json.loads((out / "registration" / "result.json").read_text())
+    assert record["couch_shift"]["6dof"] and record["couch_shift"]["patient_position_assumed"] is True
+    assert record["provenance"]["inputs"]["fixed"]["path"] == str((out / "data" / "simct.nii.gz").resolve())
+    assert record["provenance"]["bundle"]["weights_sha256"] and record["provenance"]["device"] == "cpu"
     # an existing output folder is refused before any work, by the command and by the function
     assert main(["demo", "--output-dir", str(out), "--device", "cpu"]) != 0
     assert "exists" in capsys.readouterr().err.lower()

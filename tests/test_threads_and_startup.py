@@ -58,10 +58,27 @@ def test_register_command_builds_its_own_parser_only():
     assert _python(code) == "True"
 
 
+NOT_ON_THE_REGISTER_PATH = {
+    "numpy.ma": "np.percentile's np.unique imports it (the QC window: export.qc_figure.percentiles instead)",
+    "tqdm.auto": "the batch's progress bar (registration.pairs, imported for --datalist only; tqdm itself comes "
+                 "with torch.hub)",
+    "monai_rigidreg.registration.pairs": "the batch (--datalist)",
+    "monai_rigidreg.networks.context_net": "the network in training (networks/__init__ exports on first use)",
+    "monai_rigidreg.networks.rigid_net": "the reference design (ablation)",
+    "monai_rigidreg.networks.transformer": "training's spatial transformer",
+    "monai_rigidreg.evaluation": "the evaluation",
+    "monai_rigidreg.simulation": "the simulator",
+    "matplotlib": "the QC figure is drawn with Pillow",
+}
+"""Modules a one-pair ``monai-rigidreg register`` does not import, and why each is not needed
+(``python -X importtime``; ``benchmarks/README.md``)."""
+
+
 def test_register_command_runs_without_importing_monai(fast_pair, tmp_path):
     """The whole ``monai-rigidreg register`` (bundle, network, registration, every default output, QC figure
     included) imports no MONAI module: ``import monai`` alone costs about 6 s on 2 cores (the speed issue); nor
-    sympy, which torch imports on its first argument check of some functions (0.24 s; torch.unravel_index did).
+    sympy, which torch imports on its first argument check of some functions (0.24 s; torch.unravel_index did);
+    nor what one pair does not need (:data:`NOT_ON_THE_REGISTER_PATH`).
     The estimate is the shipped model's on the known motion (as in ``tests/test_register.py``)."""
     import json
 
@@ -72,8 +89,8 @@ def test_register_command_runs_without_importing_monai(fast_pair, tmp_path):
             f"rc = main(['register', '--fixed', {str(fast_pair['fixed'])!r}, '--moving', "
             f"{str(fast_pair['moving'])!r}, '--output-dir', {str(out)!r}, '--threads', '2', '-q']); "
             "print(rc, sorted(m for m in sys.modules if m == 'monai' or m.startswith('monai.')), "
-            "'sympy' in sys.modules)")
-    assert _python(code).splitlines()[-1] == "0 [] False"  # the command prints its result first
+            f"'sympy' in sys.modules, sorted(set({sorted(NOT_ON_THE_REGISTER_PATH)!r}) & set(sys.modules)))")
+    assert _python(code).splitlines()[-1] == "0 [] False []"  # the command prints its result first
     result = json.loads((out / "result.json").read_text())
     assert result["details"]["cpu_threads"] == 2  # --threads 2: exactly 2, whatever else runs (no adapting)
     assert {"registered.nii.gz", "qc.png", "transform.tfm"} <= {p.name for p in out.iterdir()}
@@ -152,6 +169,32 @@ def test_adaptive_threads_without_a_reading_keeps_the_count(monkeypatch):
     counts = iter([5, 2, 4])  # the fewest of the readings, less the caller's own thread
     monkeypatch.setattr(device, "_runnable_tasks", lambda: next(counts))
     assert device.busy_cores(samples=3, interval_s=0.0) == 1
+
+
+def test_top_level_help_imports_neither_torch_nor_monai():
+    """``monai-rigidreg --help``, ``monai-rigidreg`` alone and every sub-command's ``--help`` answer without torch or
+    MONAI (they took 6-9 s on 2 cores when the parsers imported the simulator, the training stack and the evaluation):
+    every sub-command is still listed, and ``simulate --help`` names every built-in phantom."""
+    from monai_rigidreg.cli import COMMANDS
+    from monai_rigidreg.simulation.phantoms import PHANTOMS
+
+    code = ("import sys, contextlib, io; from monai_rigidreg.cli import main\n"
+            "for argv in (['--help'], [], *([c, '--help'] for c in sys.argv[1:])):\n"
+            "    out = io.StringIO()\n"
+            "    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):\n"
+            "        try:\n            code = main(argv)\n        except SystemExit as e:\n            code = e.code\n"
+            "    print(repr(out.getvalue()), code)\n"
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'monai', 'SimpleITK', 'numpy')))")
+    done = subprocess.run([sys.executable, "-c", code, *COMMANDS], capture_output=True, text=True, check=True)
+    *helps, imported = done.stdout.strip().splitlines()
+    assert imported == "[]"
+    top, bare, *commands = [(eval(text), int(code)) for text, code in (h.rsplit(" ", 1) for h in helps)]  # noqa: S307
+    assert top[1] == 0 and bare[1] == 2  # no command: a usage error, with the help on stderr
+    for name in COMMANDS:
+        assert name in top[0] and name in bare[0]
+    assert all(code == 0 for _, code in commands)
+    simulate = " ".join(commands[list(COMMANDS).index("simulate")][0].split())
+    assert all(name in simulate for name in PHANTOMS)
 
 
 def test_version_and_package_import_do_not_import_torch():

@@ -18,12 +18,25 @@ Variants (``--variants``):
 * ``corr-nolevels``: the same without the coarse level's supervision (``w_levels=0``);
 * ``corr-composite``: the reference's composite loss SSIM + NCC + MI + gradient + L2 (weights 1, 0.1, 0.1, 0.1,
   1e-4) plus the supervised terms;
-* ``corr-image-only``: the composite loss without any supervised term (unsupervised, as the reference trains).
+* ``corr-image-only``: the composite loss without any supervised term (unsupervised, as the reference trains);
+* ``context``: the next network, :class:`~monai_rigidreg.networks.ContextCorrelationNet` (``train_context.json``'s
+  settings: coarse level over the CT context, 8 mm and 4 mm levels, training passes), supervised point distance of
+  every level plus the match loss (:func:`~monai_rigidreg.losses.match_loss`, weight 1);
+* ``context-nomatch``: the same without the match loss;
+* ``context-no4mm``: the same without the 4 mm level.
 
-Usage::
+``--stream sampler`` trains every variant on the context network's stream instead
+(:class:`~monai_rigidreg.engine.RigidPairSampler` over ``--datalist``, e.g. ``data/train.json`` and
+``data/clinical/dataset.json``, and the four training CTs: the clinic's range of motion); the networks without a
+context get the same samples without it.
+
+Usage (the 2026-12-01 rows; then the context rows on the sampler stream)::
 
     python -m benchmarks.ablation.bench_ablation --iterations 300 \\
         --results benchmarks/results/0.3.0/bench_ablation_2026-12-01.txt
+    python -m benchmarks.ablation.bench_ablation --stream sampler --iterations 150 \\
+        --datalist data/train.json data/clinical/dataset.json --variants mlp corr context context-nomatch \\
+        context-no4mm --results benchmarks/results/0.4.9/bench_ablation_context_<date>.txt
 """
 
 from __future__ import annotations
@@ -48,18 +61,34 @@ HELD_OUT = ("bench_out/real_ct/thorax_4dct_phase00_itkelastix/dataset.json",
             "bench_out/real_ct/head_tigre_ct/dataset.json")
 SUP_ONLY = {"w_ssim": 0.0, "w_ncc": 0.0, "w_mi": 0.0, "w_grad": 0.1, "w_reg": 1e-4, "w_sup": 1.0}
 COMPOSITE = {"w_ssim": 1.0, "w_ncc": 0.1, "w_mi": 0.1, "w_grad": 0.1, "w_reg": 1e-4, "w_sup": 1.0}
-VARIANTS = {
-    "mlp": ("mlp", SUP_ONLY, 0.5),
-    "corr": ("corr", SUP_ONLY, 0.5),
-    "corr-nolevels": ("corr", SUP_ONLY, 0.0),
-    "corr-composite": ("corr", COMPOSITE, 0.5),
-    "corr-image-only": ("corr", {**COMPOSITE, "w_sup": 0.0}, 0.0),
+VARIANTS = {  # name: (design, loss weights, w_levels, w_match)
+    "mlp": ("mlp", SUP_ONLY, 0.5, 0.0),
+    "corr": ("corr", SUP_ONLY, 0.5, 0.0),
+    "corr-nolevels": ("corr", SUP_ONLY, 0.0, 0.0),
+    "corr-composite": ("corr", COMPOSITE, 0.5, 0.0),
+    "corr-image-only": ("corr", {**COMPOSITE, "w_sup": 0.0}, 0.0, 0.0),
+    "context": ("context", SUP_ONLY, 0.5, 1.0),
+    "context-nomatch": ("context", SUP_ONLY, 0.5, 0.0),
+    "context-no4mm": ("context-no4mm", SUP_ONLY, 0.5, 1.0),
 }
+TRAIN_CTS = ("abdomen_pelvis_totalsegmentator_example_ct", "head_tcia_cptac_lscc_ct", "thorax_tcia_cptac_pda_ct",
+             "abdomen_pelvis_tcia_tcga_ov_ct")
+"""The real CTs of the ``sampler`` stream (the training CTs of ``scripts/train_context_model.sh``)."""
 
 
 def build(design: str, train_cfg: dict):
-    """The regression network of a design, with train.json's settings for the shipped one."""
-    from monai_rigidreg.networks import CorrelationRigidNet, DualEncoderRigidNet
+    """The regression network of a design, with train.json's settings for the shipped one and
+    train_context.json's for the context network."""
+    from monai_rigidreg.networks import ContextCorrelationNet, CorrelationRigidNet, DualEncoderRigidNet
+
+    if design.startswith("context"):
+        ctx = json.loads((REPO / "bundles/cbct_ct_rigid/configs/train_context.json").read_text())
+        kw = {k: v for k, v in ctx["network_def#regression"].items()
+              if not k.startswith("_") and not (isinstance(v, str) and v.startswith(("@", "$")))}
+        passes = tuple(ctx["train_passes"])
+        return ContextCorrelationNet(grid_size=train_cfg["network_size"], grid_spacing=train_cfg["network_spacing"],
+                                     passes=(passes[0], 0) if design == "context-no4mm" else passes,
+                                     context_factor=ctx["context_factor"], **kw)
 
     if design == "mlp":  # the reference design as bundle 0.2 shipped it
         return DualEncoderRigidNet(channels=(8, 16, 32, 32), strides=(2, 2, 2, 2), num_res_units=2, fusion="flatten",
@@ -81,23 +110,27 @@ def train_variant(name: str, args: argparse.Namespace, train_cfg: dict, out) -> 
     from monai_rigidreg.losses import RigidRegistrationLoss
     from monai_rigidreg.networks import TwoStageRigidNet
 
-    design, weights, w_levels = VARIANTS[name]
+    design, weights, w_levels, w_match = VARIANTS[name]
     set_determinism(seed=args.seed)
     net = build(design, train_cfg)
     model = TwoStageRigidNet(net, None)
-    pre = train_cfg["train"]["preprocessing"]
-    chain = registration_transforms(
-        "train", train_cfg["network_size"], train_cfg["network_spacing"],
-        translate_range=train_cfg["translate_range"], rotate_range=train_cfg["rotate_range"],
-        axis_prob=train_cfg["axis_prob"], degradation_kwargs=pre["degradation_kwargs"],
-        context_size=train_cfg["context_size"], isocenter_offset=train_cfg["isocenter_offset"])
-    items = load_decathlon_datalist(str(args.datalist), is_segmentation=False, data_list_key="training")
-    ds = CacheDataset(items, chain, cache_rate=1.0, num_workers=0, progress=False)
-    loader = DataLoader(ds, batch_size=args.batch_size, shuffle=True, num_workers=1, persistent_workers=True)
+    if args.stream == "sampler":  # every variant sees the same samples (seeded); the context only where taken
+        loader = DataLoader(_sampler(args, train_cfg), batch_size=args.batch_size, num_workers=1,
+                            persistent_workers=True)
+    else:
+        pre = train_cfg["train"]["preprocessing"]
+        chain = registration_transforms(
+            "train", train_cfg["network_size"], train_cfg["network_spacing"],
+            translate_range=train_cfg["translate_range"], rotate_range=train_cfg["rotate_range"],
+            axis_prob=train_cfg["axis_prob"], degradation_kwargs=pre["degradation_kwargs"],
+            context_size=train_cfg["context_size"], isocenter_offset=train_cfg["isocenter_offset"])
+        items = load_decathlon_datalist(str(args.datalist[0]), is_segmentation=False, data_list_key="training")
+        ds = CacheDataset(items, chain, cache_rate=1.0, num_workers=0, progress=False)
+        loader = DataLoader(ds, batch_size=args.batch_size, shuffle=True, num_workers=1, persistent_workers=True)
     crit = RegistrationCriterion(train_cfg["network_size"], train_cfg["network_spacing"],
-                                 loss=RigidRegistrationLoss(**weights), w_levels=w_levels)
+                                 loss=RigidRegistrationLoss(**weights), w_levels=w_levels, w_match=w_match)
     opt = torch.optim.Adam(model.parameters(), lr=args.learning_rate)
-    prepare = RegistrationPrepareBatch()
+    prepare = RegistrationPrepareBatch(context_key="context" if getattr(net, "takes_context", False) else None)
     step, t0, losses = 0, time.perf_counter(), []
     while step < args.iterations:
         for batch in loader:
@@ -117,6 +150,24 @@ def train_variant(name: str, args: argparse.Namespace, train_cfg: dict, out) -> 
     return model, seconds
 
 
+_SOURCES: list = []
+
+
+def _sampler(args: argparse.Namespace, train_cfg: dict):
+    """The ``sampler`` stream: :class:`~monai_rigidreg.engine.RigidPairSampler` over ``--datalist`` (simulated
+    pairs) and the training CTs of ``--data``, seeded; the sources are read once for all variants."""
+    from monai_rigidreg.engine.sampler import RigidPairSampler, load_sources
+    from monai_rigidreg.io.shared_data import shared_data_dir
+
+    if not _SOURCES:
+        data = args.data or shared_data_dir()
+        cts = [Path(data) / f"{n}.nii.gz" for n in TRAIN_CTS if (Path(data) / f"{n}.nii.gz").is_file()]
+        _SOURCES.extend(load_sources(datalists=args.datalist, cts=cts, network_spacing=train_cfg["network_spacing"][0],
+                                     context_spacing=2 * train_cfg["network_spacing"][0]))
+    return RigidPairSampler(_SOURCES, network_size=train_cfg["network_size"],
+                            network_spacing=train_cfg["network_spacing"], seed=args.seed)
+
+
 def evaluate(model, datalists: list[Path], train_cfg: dict) -> dict[str, list[float]]:
     from monai_rigidreg.evaluation import evaluate_datalist
     from monai_rigidreg.registration.registrar import RigidRegistrar
@@ -132,7 +183,13 @@ def evaluate(model, datalists: list[Path], train_cfg: dict) -> dict[str, list[fl
 
 def main() -> int:
     ap = script_parser(__doc__)
-    ap.add_argument("--datalist", type=Path, default=Path("data/train.json"))
+    ap.add_argument("--datalist", type=Path, nargs="+", default=[Path("data/train.json")],
+                    help="simulated training pairs (the chain stream reads the first)")
+    ap.add_argument("--stream", choices=("chain", "sampler"), default="chain",
+                    help="chain: the shipped network's training chain (registration_transforms) over --datalist, "
+                         "as the 2026-12-01 rows; sampler: the context network's RigidPairSampler over --datalist "
+                         "and the training CTs (clinical range of motion)")
+    ap.add_argument("--data", type=Path, default=None, help="folder of the real CTs (default ../shared/data)")
     ap.add_argument("--held-out", type=Path, nargs="+", default=[Path(p) for p in HELD_OUT])
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--iterations", type=int, default=300)
@@ -152,7 +209,7 @@ def main() -> int:
         print(text, flush=True)
         lines.append(text)
 
-    missing = [p for p in [args.datalist, *args.held_out] if not p.is_file()]
+    missing = [p for p in [*args.datalist, *args.held_out] if not p.is_file()]
     if missing:
         out(f"missing datalist(s): {', '.join(map(str, missing))} (scripts/make_training_data.sh, "
             "benchmarks/accuracy/bench_real_ct.py simulate them)")
@@ -161,8 +218,10 @@ def main() -> int:
     out(f"command: python {shlex.join([os.path.relpath(sys.argv[0]), *sys.argv[1:]])}")
     out(f"date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}; machine: {platform.node()}, "
         f"{os.cpu_count()} cores, threads {args.threads}; load average {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    stream = (f"{args.stream} stream from {' '.join(map(str, args.datalist))}"
+              + (f" and the CTs {', '.join(TRAIN_CTS)}" if args.stream == "sampler" else ""))
     out(f"training: {args.iterations} steps of batch {args.batch_size}, Adam lr {args.learning_rate}, "
-        f"seed {args.seed}, stream from {args.datalist}; held out: {', '.join(p.parent.name for p in args.held_out)}")
+        f"seed {args.seed}, {stream}; held out: {', '.join(p.parent.name for p in args.held_out)}")
     rows = []
     for name in args.variants:
         model, seconds = train_variant(name, args, train_cfg, out)

@@ -35,7 +35,8 @@ def simulate_sets(out: Path, cases: int, thorax: Path | None, seed: int) -> list
     if thorax is not None and thorax.is_file():
         lists.append(simulate_dataset(out / "thorax_paper", phantom=str(thorax), protocol="paper", num_cases=cases,
                                       preset="paper", seed=seed + 1, progress=False,
-                                      simct_size=(256, 256, 160), simct_spacing=(1.5, 1.5, 2.0)))
+                                      simct_size=(256, 256, 160), simct_spacing=(1.5, 1.5, 2.0),
+                                      ct_frame=False))  # centred on the origin, as the results were measured
     return lists
 
 

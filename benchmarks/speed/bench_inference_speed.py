@@ -2,7 +2,7 @@
 
 Runs on cases of a datalist (default: the Shepp-Logan set that ``bench_registration.py`` simulates) and prints the
 median seconds per case of every stage of :class:`monai_rigidreg.registration.RigidRegistrar`, each next to the
-slower way it replaced, so the figures quoted in the code and the README can be rerun:
+slower way it replaced, so the figures quoted in the code and docs/results.md can be rerun:
 
 * reading the CT as stored (the simulator writes int16 HU) and a float32 ``.nii.gz`` copy, with the NaN check
   (a second read with nibabel) after SimpleITK's read or overlapped with it, as ``load_volume`` does;

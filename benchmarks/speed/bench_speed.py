@@ -1,4 +1,5 @@
-"""Speed of the default registration path (issue 18), next to elastix in the same run, on clinical-size pairs.
+"""Speed of the default registration path (issue 18), next to elastix (and, ``--methods``, SimpleITK and the peer tools
+ANTs and greedy) in the same run, on clinical-size pairs.
 
 The pairs: the real thorax planning CT of ``../shared/data`` (256 x 256 x 141 voxels, int16 ``.nii.gz``, held out of
 training) as the fixed image, and CBCTs of 128^3 voxels at 1.5 mm (int16 ``.nii.gz``) simulated in the projection
@@ -16,7 +17,9 @@ Printed, each with the command or call it times:
    CBCT);
 3. **in-process**: the registrar loaded once, volumes in memory, the default path with its confidence check
    (``monai_rigidreg.register``), median seconds per case and per stage, TRE and success (< 2 mm) next to
-   ``register_elastix`` on the same cases;
+   ``register_elastix`` on the same cases (and each baseline of ``--methods``: ``sitk``, ``ants``, ``greedy``, with
+   the CBCT's field of view as their moving mask; a peer tool counts only after its convention check passes), with
+   elastix's time over each method's;
 4. **under load**: the in-process median beside one single-threaded busy loop, and beside a second process doing
    the same registrations, as ratios to the quiet median;
 5. **batch**: ``monai-rigidreg register --datalist`` over all pairs in one process (model loaded once): wall time
@@ -54,7 +57,7 @@ import numpy as np
 import SimpleITK as sitk
 
 import monai_rigidreg  # first: its thread policy applies before torch loads
-from benchmarks.bench_common import Tee, find_cts, script_parser
+from benchmarks.bench_common import Tee, checked_peers, find_cts, script_parser
 
 CT_NAME = "thorax_4dct_phase00_itkelastix"
 ELASTIX_COMMAND = """
@@ -141,15 +144,28 @@ def in_process(registrar, ct: sitk.Image, cases: list[Path]) -> list[dict]:
     return rows
 
 
-def elastix_rows(ct: sitk.Image, cases: list[Path]) -> list[dict]:
-    from monai_rigidreg.registration.classical import register_elastix
+BASELINES = {"elastix": "elastix (default rigid map, CBCT FOV mask)",
+             "sitk": "SimpleITK (Mattes MI, CBCT FOV mask)",
+             "ants": "ANTs (antspyx, Rigid preset, CBCT FOV mask)",
+             "greedy": "greedy (picsl-greedy, -a -dof 6, NMI, CBCT FOV mask)"}
+
+
+def baseline_rows(ct: sitk.Image, cases: list[Path], method: str = "elastix") -> list[dict]:
+    """A baseline of :data:`BASELINES` on every case: seconds and TRE."""
+    from monai_rigidreg.registration.classical import register_elastix, register_sitk
+    from monai_rigidreg.registration.peers import register_peer
 
     rows = []
     for case_dir in cases:
         record, cbct, points = load_case(case_dir)
         fov = sitk.ReadImage(str(case_dir / "cbct_fov.nii.gz"))
         t = time.perf_counter()
-        res = register_elastix(ct, cbct, moving_mask=fov)
+        if method == "elastix":
+            res = register_elastix(ct, cbct, moving_mask=fov)
+        elif method == "sitk":
+            res = register_sitk(ct, cbct, moving_mask=fov)
+        else:
+            res = register_peer(method, ct, cbct, moving_mask=fov)
         dt = time.perf_counter() - t
         rows.append({"case": case_dir.name, "time_s": dt, "tre": tre_mm(res.params, res.center, record, points)})
     return rows
@@ -183,6 +199,10 @@ def main() -> None:
     ap.add_argument("--wait-policy", default=None, help="OMP_WAIT_POLICY for this run (default: the package's)")
     ap.add_argument("--spin-count", default=None, help="GOMP_SPINCOUNT for this run (default: the package's)")
     ap.add_argument("--skip", nargs="*", default=[], choices=["startup", "cli", "load", "batch"])
+    ap.add_argument("--methods", nargs="+", default=["elastix"], choices=list(BASELINES),
+                    help="baselines of the in-process section beside the default path (default elastix; also sitk "
+                         "and the peer tools ants and greedy, the 'bench' extra); elastix is always run, the ratios' "
+                         "reference")
     ap.add_argument("--results", type=Path, default=None)
     ap.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -269,14 +289,16 @@ def main() -> None:
         out(f"load average (1/5/15 min): {load_text()}")
 
     out("\n## 3. In-process (registrar loaded once, volumes in memory; the network path with its confidence check)\n")
+    baselines = checked_peers(list(dict.fromkeys(["elastix", *args.methods])), out)
     registrar = monai_rigidreg.RigidRegistrar.from_bundle()
     ours = in_process(registrar, ct, cases)
-    elx = elastix_rows(ct, cases)
-    t_elx = float(np.median([r["time_s"] for r in elx]))
+    rows_of = {m: baseline_rows(ct, cases, m) for m in baselines}
+    t_elx = float(np.median([r["time_s"] for r in rows_of["elastix"]]))
     out("| method | n | median s / case | mean TRE (mm) | median TRE (mm) | success (<2 mm) | speed-up |")
     out("|---|---|---|---|---|---|---|")
     t_ours = summarize(out, "monai-rigidreg (default path)", ours, t_elx)
-    summarize(out, "elastix (default rigid map, CBCT FOV mask)", elx)
+    for m in baselines:
+        summarize(out, BASELINES[m], rows_of[m], None if m == "elastix" else t_elx)
     stages = sorted({k for r in ours for k in r["stages"]}, key=lambda k: list(ours[0]["stages"]).index(k)
                     if k in ours[0]["stages"] else 99)
     out("\nmedian seconds per stage: " + ", ".join(

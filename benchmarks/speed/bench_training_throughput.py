@@ -9,9 +9,16 @@ the learned :class:`~monai_rigidreg.networks.CorrelationRigidNet` and the fine s
 :class:`~monai_rigidreg.engine.StagedInferer`) with :class:`~monai_rigidreg.engine.RegistrationCriterion`: the
 shipped training's supervised loss, and the reference's full composite loss. The slower of the two bounds training.
 
+``--context`` measures the next network's training instead (``configs/train_context.json``): the data side is
+:class:`~monai_rigidreg.engine.RigidPairSampler` drawing one sample (from the simulated pairs of ``--datalist`` and
+the real CTs of ``--ct``), the network side one step of :class:`~monai_rigidreg.networks.ContextCorrelationNet` with
+its training passes, bfloat16 encoders where available and the match loss.
+
 Usage::
 
     python -m benchmarks.speed.bench_training_throughput --datalist data/train.json --threads 2
+    python -m benchmarks.speed.bench_training_throughput --context --datalist data/train.json \
+        data/clinical/dataset.json --ct ../shared/data/thorax_tcia_cptac_pda_ct.nii.gz --threads 2
 """
 
 from __future__ import annotations
@@ -40,7 +47,9 @@ LOSSES = {
 
 def main() -> None:
     ap = script_parser(__doc__)
-    ap.add_argument("--datalist", default="data/train.json")
+    ap.add_argument("--datalist", nargs="+", default=["data/train.json"])
+    ap.add_argument("--context", action="store_true", help="the context network's sampler and step (train_context)")
+    ap.add_argument("--ct", nargs="*", default=[], help="--context: real CTs as sources too")
     ap.add_argument("--items", type=int, default=6, help="datalist items cached")
     ap.add_argument("--samples", type=int, default=12, help="samples timed per measurement")
     ap.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 4])
@@ -48,6 +57,9 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     set_determinism(seed=0)
+    if args.context:
+        return context_throughput(args)
+    args.datalist = args.datalist[0]
     cfg = ConfigParser()
     cfg.read_config(str(default_bundle_path() / "configs" / "train.json"))
     size, spacing = cfg["network_size"], cfg["network_spacing"]
@@ -97,6 +109,62 @@ def main() -> None:
                     steps.append(time.perf_counter() - t0)
             step = statistics.median(steps)
             print(f"| {name} | {b} | {step:.3f} | {b / step:.2f} |")
+    print(f"\nload at the end {os.getloadavg()[0]:.2f}")
+
+
+def context_throughput(args) -> None:
+    """The data side (one :class:`RigidPairSampler` sample, one core as in the run's worker) and the network side
+    (one step of the context network with the match loss) of ``scripts/train_context_model.sh``."""
+    import numpy as np
+    from monai.data import list_data_collate
+
+    from monai_rigidreg.engine.sampler import RigidPairSampler, load_sources
+
+    configs = default_bundle_path() / "configs"
+    cfg = ConfigParser()
+    cfg.read_config([str(configs / "train.json"), str(configs / "train_context.json")])
+    size, spacing = cfg["network_size"], cfg["network_spacing"]
+    print(f"threads {args.threads}; network grid {size} at {spacing} mm; load {os.getloadavg()[0]:.2f}")
+    t0 = time.perf_counter()
+    sources = load_sources(datalists=args.datalist, cts=args.ct, network_spacing=spacing[0],
+                           context_spacing=spacing[0] * cfg["context_factor"])
+    load_s = time.perf_counter() - t0
+    sampler = RigidPairSampler(sources, network_size=size, network_spacing=spacing, seed=0)
+    rng = np.random.default_rng(0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as in the run's DataLoader worker
+    sampler.draw(rng)
+    times = []
+    for _ in range(args.samples):
+        t0 = time.perf_counter()
+        sampler.draw(rng)
+        times.append(time.perf_counter() - t0)
+    torch.set_num_threads(threads)
+    data_s = statistics.median(times)
+    print("\n| data pipeline (RigidPairSampler) | s per sample | samples per second |")
+    print("|---|---|---|")
+    print(f"| reading the {len(sources)} sources, once | {load_s:.1f} | - |")
+    print(f"| one sample (one thread) | {data_s:.3f} | {1 / data_s:.1f} |")
+    network = cfg.get_parsed_content("network_def", instantiate=True)
+    network.train()
+    criterion = cfg.get_parsed_content("loss", instantiate=True)
+    prepare, inferer = RegistrationPrepareBatch(), StagedInferer()
+    optimizer = torch.optim.Adam(network.parameters(), lr=1e-5)
+    print("\n| network step (forward + loss + backward + Adam) | batch | s per step | samples per second |")
+    print("|---|---|---|---|")
+    for b in args.batch_sizes:
+        inputs, targets = prepare(list_data_collate([sampler.draw(rng) for _ in range(b)]), device="cpu")
+        steps = []
+        for k in range(max(2, args.samples // b) + 1):
+            t0 = time.perf_counter()
+            optimizer.zero_grad()
+            loss = criterion(inferer(inputs, network), targets)
+            loss.backward()
+            optimizer.step()
+            if k:
+                steps.append(time.perf_counter() - t0)
+        step = statistics.median(steps)
+        print(f"| context network, train_context.json's loss | {b} | {step:.3f} | {b / step:.2f} |")
     print(f"\nload at the end {os.getloadavg()[0]:.2f}")
 
 

@@ -68,18 +68,29 @@ def check_bundle_options(flags: dict[str, Any] | None = None, device: Any = None
         resolve_device(device)
 
 
+WHERE_TO_RUN = ("--bundle_root must name the bundle folder: from the repository root pass --config_file "
+                "bundles/cbct_ct_rigid/configs/inference.json --bundle_root bundles/cbct_ct_rigid; from inside the "
+                "bundle folder --config_file configs/inference.json (its default bundle_root '.' is then right)")
+"""Where ``python -m monai.bundle run`` is run from, said where the bundle's weights are not found."""
+
+
 def bundle_check_inputs(fixed: str | Path | None, moving: str | Path | None, output_dir: str | Path,
                         overwrite: bool = False, cascade_steps: Any = None, datalist: str | Path | None = None,
-                        flags: dict[str, Any] | None = None, device: Any = None) -> None:
+                        flags: dict[str, Any] | None = None, device: Any = None,
+                        checkpoint: str | Path | None = None) -> None:
     """:func:`~monai_rigidreg.registration.inputs.check_register_inputs` for the bundle's ``inference.json`` (its first
     ``initialize`` step, before the network is built): a bad input ends the run with one line naming the problem and
     exit status 2. With a ``datalist`` of pairs (batch registration) the datalist must exist and each pair is checked
     when its turn comes (:class:`~monai_rigidreg.registration.pairs.RegistrationEvaluator`). ``flags`` and ``device``:
-    as :func:`check_bundle_options`.
+    as :func:`check_bundle_options`. ``checkpoint``: the weights the config loads next (``@bundle_root`` +
+    ``/models/model.pt``); missing, the run ends saying where to run it from (:data:`WHERE_TO_RUN`) instead of in
+    ``torch.load``'s traceback.
 
     For ``python -m monai.bundle run``: it raises ``SystemExit`` rather than an exception.
     """
     with bundle_errors():
+        if checkpoint is not None and not Path(checkpoint).is_file():
+            raise InputError(f"no network weights at {checkpoint}: {WHERE_TO_RUN}")
         check_bundle_options(flags, device)
         if not datalist:
             check_register_inputs(fixed, moving, output_dir, overwrite, cascade_steps)
@@ -94,18 +105,33 @@ def bundle_check_inputs(fixed: str | Path | None, moving: str | Path | None, out
 
 
 def bundle_evaluate(datalist: str | Path, methods: Any, output_dir: str | Path, registrar: RigidRegistrar,
-                    max_cases: Any = None, overwrite: Any = False) -> dict[str, Any]:
+                    max_cases: Any = None, overwrite: Any = False, sampler: Any = None) -> dict[str, Any]:
     """:func:`~monai_rigidreg.evaluation.evaluate.evaluate_datalist` for the bundle's ``evaluate.json``: prints the
-    report; a bad datalist, method or output folder ends the run with one line and exit status 2 (was a traceback)."""
-    from monai_rigidreg.evaluation.evaluate import evaluate_datalist
+    report; a bad datalist, method or output folder ends the run with one line and exit status 2 (was a traceback).
 
+    With ``sampler`` (``multi_gpu_evaluate.json``: a ``DistributedSampler`` over the datalist's items, under
+    ``torchrun``) this process registers the sampler's cases only and rank 0 merges every rank's results and writes
+    the one report (:func:`~monai_rigidreg.evaluation.distributed.evaluate_distributed`); rank 0 prints it.
+    """
     with bundle_errors():
         check_bundle_options({"overwrite": overwrite})
         if isinstance(methods, str) or not isinstance(methods, (list, tuple)):
             raise InputError(f"--methods must be a list, e.g. \"['network']\", got {methods!r}")
-        out = evaluate_datalist(datalist, list(methods), output_dir, registrar=registrar, max_cases=max_cases,
-                                overwrite=bool(overwrite))
-        print(out["report"])
+        if sampler is None:
+            from monai_rigidreg.evaluation.evaluate import evaluate_datalist
+
+            out = evaluate_datalist(datalist, list(methods), output_dir, registrar=registrar, max_cases=max_cases,
+                                    overwrite=bool(overwrite))
+            print(out["report"])
+            return out
+        import torch.distributed as dist
+
+        from monai_rigidreg.evaluation.distributed import evaluate_distributed
+
+        out = evaluate_distributed(datalist, list(methods), output_dir, registrar=registrar, sampler=sampler,
+                                   max_cases=max_cases, overwrite=bool(overwrite))
+        if not dist.is_initialized() or dist.get_rank() == 0:
+            print(out["report"])
         return out
 
 

@@ -71,6 +71,7 @@ __all__ = [
     "voxel_matrix",
     "lps_to_ras_affine",
     "ras_to_lps_affine",
+    "ras_to_lps_transform",
     "transform_points",
     "target_registration_error",
     "point_distances_torch",
@@ -504,6 +505,20 @@ def lps_to_ras_affine(affine: ArrayLike) -> np.ndarray:
 def ras_to_lps_affine(affine: ArrayLike) -> np.ndarray:
     """Index-to-RAS affine -> index-to-LPS affine."""
     return LPS_TO_RAS @ np.asarray(affine, dtype=np.float64)
+
+
+def ras_to_lps_transform(matrix: ArrayLike) -> np.ndarray:
+    """A point-to-point 4x4 transform written in RAS coordinates (greedy's and ITK-SNAP's matrices, NIfTI tools)
+    -> the same transform in LPS: ``F @ M @ F`` with ``F = LPS_TO_RAS`` (its own inverse, so the same call converts
+    back). Unlike an image affine (:func:`ras_to_lps_affine`), a transform's input is flipped too.
+
+    >>> ras_to_lps_transform(params_to_matrix([5, 0, 0, 0, 0, 0]))[:3, 3].tolist()
+    [-5.0, 0.0, 0.0]
+    """
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape != (4, 4):
+        raise ValueError(f"expected a 4x4 matrix, got shape {m.shape}")
+    return LPS_TO_RAS @ m @ LPS_TO_RAS
 
 
 # ---------------------------------------------------------------------------------------------------------------

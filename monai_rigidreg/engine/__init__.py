@@ -1,33 +1,21 @@
-"""Training and evaluation glue for MONAI engines: batch preparation, criterion, metrics, handlers, data."""
+"""Training and evaluation glue for MONAI engines: batch preparation, criterion, metrics, handlers, data.
 
-from monai_rigidreg.engine.batch import RegistrationPrepareBatch
-from monai_rigidreg.engine.criterion import RegistrationCriterion, canonical_grid
-from monai_rigidreg.engine.data import registration_transforms
-from monai_rigidreg.engine.handlers import (
-    LossTermsHandler,
-    OptionalTensorBoardStatsHandler,
-    ResumeHandler,
-    TrainingCheckpointSaver,
-    TrainingCurveHandler,
-    plot_history,
-)
-from monai_rigidreg.engine.inferer import StagedInferer
-from monai_rigidreg.engine.metrics import RigidErrorHandler, RigidErrorMetric, error_handlers, from_registration_output
+The names below are exported here on first use (PEP 562): importing the ``train`` command's module imports neither
+torch nor MONAI (``monai-rigidreg --help`` builds its parser).
+"""
 
-__all__ = [
-    "RegistrationPrepareBatch",
-    "RegistrationCriterion",
-    "StagedInferer",
-    "canonical_grid",
-    "registration_transforms",
-    "LossTermsHandler",
-    "OptionalTensorBoardStatsHandler",
-    "TrainingCurveHandler",
-    "ResumeHandler",
-    "TrainingCheckpointSaver",
-    "plot_history",
-    "RigidErrorHandler",
-    "RigidErrorMetric",
-    "error_handlers",
-    "from_registration_output",
-]
+from monai_rigidreg.core.lazy_exports import lazy_exports
+
+_MODULES = {
+    "batch": ("RegistrationPrepareBatch",),
+    "criterion": ("RegistrationCriterion", "canonical_grid"),
+    "data": ("registration_transforms",),
+    "handlers": ("LossTermsHandler", "OptionalTensorBoardStatsHandler", "ResumeHandler", "TrainingCheckpointSaver",
+                 "TrainingCurveHandler", "TrainingProgressHandler", "plot_history"),
+    "inferer": ("StagedInferer",),
+    "metrics": ("RigidErrorHandler", "RigidErrorMetric", "error_handlers", "from_registration_output"),
+    "sampler": ("MotionRange", "RigidPairSampler", "load_sources"),
+}
+_NAMES = {name: f"monai_rigidreg.engine.{module}" for module, names in _MODULES.items() for name in names}
+__all__ = list(_NAMES)
+__getattr__, __dir__ = lazy_exports(__name__, _NAMES)

@@ -21,12 +21,14 @@ class RegistrationPrepareBatch(PrepareBatch):
     ``gt_key`` (``{"params": [B, 6], ...}``), and optionally a CBCT field-of-view mask (``mask_key``).
 
     Output: ``(inputs, targets)`` with ``inputs = cat([moving, fixed], 1)`` (``[B, 2, x, y, z]``, the bundle's
-    network input) and ``targets = {"moving", "fixed", "params" ([B, 6] float32), "mask" (or absent)}``.
+    network input; ``cat([moving, fixed, context], 1)`` where the batch has a CT context under ``context_key``)
+    and ``targets = {"moving", "fixed", "params" ([B, 6] float32), "mask" (or absent)}``.
 
     Args:
         moving_key, fixed_key: image keys.
         gt_key: ground-truth record key.
         mask_key: field-of-view mask key (skipped where absent).
+        context_key: CT context key (skipped where absent; same spatial shape as the network grid).
     """
 
     def __init__(
@@ -35,8 +37,10 @@ class RegistrationPrepareBatch(PrepareBatch):
         fixed_key: str = "fixed",
         gt_key: str = RIGID_KEY,
         mask_key: str | None = "moving_fov",
+        context_key: str | None = "context",
     ) -> None:
         self.moving_key, self.fixed_key, self.gt_key, self.mask_key = moving_key, fixed_key, gt_key, mask_key
+        self.context_key = context_key
 
     def __call__(
         self,
@@ -59,4 +63,6 @@ class RegistrationPrepareBatch(PrepareBatch):
             targets["params"] = to(gt["params"] if isinstance(gt, Mapping) else gt).reshape(-1, 6)
         if self.mask_key is not None and self.mask_key in batchdata:
             targets["mask"] = to(batchdata[self.mask_key])
+        if self.context_key is not None and self.context_key in batchdata:
+            return torch.cat([moving, fixed, to(batchdata[self.context_key])], dim=1), targets
         return torch.cat([moving, fixed], dim=1), targets

@@ -8,9 +8,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from monai_rigidreg.core.geometry import Grid
+from monai_rigidreg.core.geometry import Grid, params_to_matrix_torch
 from monai_rigidreg.core.network_grid import NetworkGridSpec
-from monai_rigidreg.losses import RigidRegistrationLoss
+from monai_rigidreg.losses import RigidRegistrationLoss, match_loss
 from monai_rigidreg.networks import RigidTransformer
 
 __all__ = ["RegistrationCriterion", "canonical_grid"]
@@ -48,6 +48,9 @@ class RegistrationCriterion(nn.Module):
         w_levels: weight (per mm, shared) of the supervised point distance of each intermediate level estimate
             (``pred["levels"]``, from a regression with levels such as
             :class:`~monai_rigidreg.networks.CorrelationRigidNet`): deep supervision of its coarse level.
+        w_match: weight (per nat) of each level's match loss (:func:`~monai_rigidreg.losses.match_loss`: the
+            cross-entropy of every cell's match against its true position), where ``pred["matches"]`` carries the
+            levels' match records (:class:`~monai_rigidreg.networks.ContextCorrelationNet` in training).
 
     Attributes:
         last_terms: ``{term: float}`` of the last call (unweighted), for handlers.
@@ -61,8 +64,10 @@ class RegistrationCriterion(nn.Module):
         image_loss_pool: int = 2,
         w_coarse: float = 0.5,
         w_levels: float = 0.5,
+        w_match: float = 0.0,
     ) -> None:
         super().__init__()
+        self.w_match = float(w_match)
         self.w_coarse = float(w_coarse)
         self.w_levels = float(w_levels)
         spec = NetworkGridSpec(network_size, network_spacing)
@@ -79,7 +84,9 @@ class RegistrationCriterion(nn.Module):
                 ) -> torch.Tensor:
         coarse = None
         levels: list = []
+        matches: list = []
         if isinstance(pred, Mapping):
+            matches = list(pred.get("matches") or [])
             pred, coarse, levels = pred["params"], pred.get("coarse"), list(pred.get("levels") or [])
         warped = self.warp(targets["moving"], pred)
         fixed = targets["fixed"]
@@ -105,4 +112,10 @@ class RegistrationCriterion(nn.Module):
                 sup_level = self.loss.sup_term(level, targets["params"], self.grid)
                 self.last_terms[f"level{i}"] = float(sup_level.detach())
                 total = total + self.w_levels * sup_level
+        if matches and self.w_match != 0 and targets.get("params") is not None:
+            truth = params_to_matrix_torch(targets["params"].to(torch.float64))
+            for i, record in enumerate(matches):
+                term = match_loss(record, truth)
+                self.last_terms[f"match{i}"] = float(term.detach())
+                total = total + self.w_match * term.to(total.dtype)
         return total

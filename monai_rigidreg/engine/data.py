@@ -7,7 +7,7 @@ import warnings
 from collections.abc import Sequence
 from typing import Any
 
-from monai.transforms import Compose, EnsureTyped, LoadImaged, SelectItemsd
+from monai.transforms import Compose, CopyItemsd, EnsureTyped, LoadImaged, SelectItemsd
 
 from monai_rigidreg.transforms import (
     CBCT_KEY,
@@ -19,7 +19,7 @@ from monai_rigidreg.transforms import (
     ResampleToNetworkGridd,
 )
 
-__all__ = ["registration_transforms", "IMAGE_KEYS", "MASK_KEY"]
+__all__ = ["registration_transforms", "IMAGE_KEYS", "MASK_KEY", "CONTEXT_KEY"]
 
 # With pydicom installed (a dependency, for the DICOM Spatial Registration), MONAI's LoadImage builds its pydicom
 # reader and announces, once per construction, that the optional nvImageCodec GPU decoder is absent: a logger warning
@@ -30,6 +30,7 @@ warnings.filterwarnings("ignore", message="NvImgCodecPydicomReader: nvImageCodec
 
 IMAGE_KEYS = ("moving", "fixed")
 MASK_KEY = "moving_fov"
+CONTEXT_KEY = "context"
 
 
 def registration_transforms(
@@ -44,6 +45,7 @@ def registration_transforms(
     degradation_kwargs: dict | None = None,
     context_size: Sequence[int] | None = None,
     isocenter_offset: float = 0.0,
+    context_factor: int | None = None,
 ) -> Compose:
     """Transform chain for a datalist of ``fixed`` / ``moving`` (paths) items with ground truth ``params`` /
     ``matrix`` / ``center`` (as ``monai-rigidreg simulate`` writes) and an optional ``moving_fov`` mask.
@@ -69,15 +71,28 @@ def registration_transforms(
             carry anatomy, not padding) around a random isocentre
             (:class:`~monai_rigidreg.transforms.RandIsocenterCropd`). ``None``: the network grid directly.
         isocenter_offset: largest offset per axis (mm) of that isocentre from the fixed image centre.
+        context_factor: ``val`` only: also put the fixed image on the CT context grid of
+            :class:`~monai_rigidreg.networks.ContextCorrelationNet` under ``"context"`` (same centre, as many voxels
+            as the network grid, ``context_factor`` times its spacing). ``None``: no context.
     """
     if mode not in ("train", "val"):
         raise ValueError(f"mode must be 'train' or 'val', got {mode!r}")
     keys = [*IMAGE_KEYS, MASK_KEY]
     train = mode == "train"
     context = train and context_size is not None
+    ct_context = not train and context_factor is not None
     xforms: list = [
         LoadImaged(keys=keys, ensure_channel_first=True, image_only=True, allow_missing_keys=True),
         EnsureTyped(keys=keys, dtype="float32", allow_missing_keys=True),
+    ]
+    if ct_context:
+        xforms += [
+            CopyItemsd(keys="fixed", names=CONTEXT_KEY),
+            ResampleToNetworkGridd(keys=CONTEXT_KEY, size=network_size,
+                                   spacing=[float(s) * int(context_factor) for s in network_spacing],
+                                   ref_key="fixed", padding_value=hu_range[0]),
+        ]
+    xforms += [
         ResampleToNetworkGridd(
             keys=keys,
             size=context_size if context else network_size,
@@ -110,7 +125,8 @@ def registration_transforms(
                                              padding_value=(hu_range[0], 0.0), allow_missing_keys=True))
     if train and degrade:
         xforms.append(RandCBCTDegradationd(keys="moving", **(degradation_kwargs or {})))
-    xforms.append(NormalizeHUd(keys=IMAGE_KEYS, a_min=hu_range[0], a_max=hu_range[1]))
+    norm_keys = [*IMAGE_KEYS, CONTEXT_KEY] if ct_context else list(IMAGE_KEYS)
+    xforms.append(NormalizeHUd(keys=norm_keys, a_min=hu_range[0], a_max=hu_range[1]))
     # only what the engine uses goes on to collation (datalists may carry free-form fields, even nulls)
-    xforms.append(SelectItemsd(keys=[*keys, RIGID_KEY, CBCT_KEY, "case_id"], allow_missing_keys=True))
+    xforms.append(SelectItemsd(keys=[*keys, CONTEXT_KEY, RIGID_KEY, CBCT_KEY, "case_id"], allow_missing_keys=True))
     return Compose(xforms)

@@ -6,6 +6,7 @@ import json
 import logging
 import math
 import re
+import time
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -81,12 +82,24 @@ class TrainingCurveHandler:
         self._last_val_epoch = -1
 
     def attach(self, engine: Any) -> None:
+        engine.add_event_handler(Events.STARTED, self._continue)
         engine.add_event_handler(Events.EPOCH_COMPLETED, self._record)
         engine.add_event_handler(Events.COMPLETED, self._write)
 
+    def _continue(self, engine: Any) -> None:
+        """A resumed run keeps the rows of the epochs its checkpoint had reached (attach after the resume)."""
+        path = self.output_dir / "history.json"
+        if engine.state.epoch > 0 and not self.history and path.is_file():
+            try:
+                rows = json.loads(path.read_text())
+            except (OSError, ValueError):
+                rows = []
+            self.history = [r for r in rows if isinstance(r, dict) and r.get("epoch", 0) <= engine.state.epoch]
+
     def _record(self, engine: Any) -> None:
         row: dict[str, float] = {"epoch": float(engine.state.epoch)}
-        row.update({k: float(v) for k, v in engine.state.metrics.items() if k.startswith("loss_")})
+        row.update({k: float(v) for k, v in engine.state.metrics.items()
+                    if k.startswith(("loss_", "train_")) and isinstance(v, (int, float))})
         if isinstance(engine.state.output, dict) and "loss" in engine.state.output:
             row["loss_last"] = float(engine.state.output["loss"])
         ev = self.evaluator
@@ -141,6 +154,94 @@ def plot_history(history: list[dict[str, float]], path: str | Path) -> Path:
     plt.close(fig)
     logger.info("training curves written to %s", path)
     return Path(path)
+
+
+class TrainingProgressHandler:
+    """Samples seen, wall time and where the time of an iteration goes (waiting for data vs the network step).
+
+    Each epoch end puts ``train_samples`` (all samples since the run began, resumed runs included),
+    ``train_wall_time_s`` (likewise), ``train_samples_per_s``, ``train_data_wait_s`` and ``train_step_s`` (mean per
+    iteration over the epoch) into the engine's metrics (so :class:`TrainingCurveHandler` records them) and logs
+    them in one line. Its totals are saved with the checkpoints (``state_dict``; put it in the saver's and the
+    resume handler's dictionaries). At the start it tells a dataset with ``set_epoch`` (an endless sampler such as
+    :class:`~monai_rigidreg.engine.sampler.RigidPairSampler`) the epoch it starts at, so a resumed run draws a new
+    stream rather than the first run's again.
+
+    Args:
+        batch_size: samples per iteration (per process).
+        dataset: the training dataset (``set_epoch`` is called where it has one).
+        world_size: processes training together.
+    """
+
+    def __init__(self, batch_size: int, dataset: Any = None, world_size: int = 1) -> None:
+        self.batch_size = int(batch_size)
+        self.dataset = dataset
+        self.world_size = int(world_size)
+        self.samples = 0
+        self.wall_time_s = 0.0
+        self._reset()
+
+    def _reset(self) -> None:
+        self._wait = self._step = 0.0
+        self._count = 0
+        self._t_get = self._t_got = None
+
+    def state_dict(self) -> dict[str, float]:
+        return {"samples": self.samples, "wall_time_s": self.wall_time_s}
+
+    def load_state_dict(self, state: dict[str, float]) -> None:
+        self.samples = int(state.get("samples", 0))
+        self.wall_time_s = float(state.get("wall_time_s", 0.0))
+
+    def attach(self, engine: Any) -> None:
+        engine.add_event_handler(Events.STARTED, self._started)
+        engine.add_event_handler(Events.GET_BATCH_STARTED, self._get_started)
+        engine.add_event_handler(Events.GET_BATCH_COMPLETED, self._get_completed)
+        engine.add_event_handler(Events.ITERATION_COMPLETED, self._iteration_completed)
+        engine.add_event_handler(Events.EPOCH_COMPLETED, self._epoch_completed)
+
+    def _started(self, engine: Any) -> None:
+        if self.dataset is not None and hasattr(self.dataset, "set_epoch"):
+            self.dataset.set_epoch(engine.state.epoch)
+        self._last = time.perf_counter()
+        self._epoch_start = self._last
+        self._samples_at_epoch = self.samples
+        self._reset()
+
+    def _get_started(self, engine: Any) -> None:
+        self._t_get = time.perf_counter()
+
+    def _get_completed(self, engine: Any) -> None:
+        self._t_got = time.perf_counter()
+        if self._t_get is not None:
+            self._wait += self._t_got - self._t_get
+
+    def _iteration_completed(self, engine: Any) -> None:
+        now = time.perf_counter()
+        if self._t_got is not None:
+            self._step += now - self._t_got
+        self._count += 1
+        self.samples += self.batch_size * self.world_size
+        self.wall_time_s += now - self._last
+        self._last = now
+
+    def _epoch_completed(self, engine: Any) -> None:
+        now = time.perf_counter()
+        self.wall_time_s += now - self._last  # handlers after the last iteration (validation, checkpoints)
+        self._last = now
+        elapsed = max(now - self._epoch_start, 1e-9)
+        n = max(self._count, 1)
+        stats = {"train_samples": float(self.samples), "train_wall_time_s": self.wall_time_s,
+                 "train_samples_per_s": (self.samples - self._samples_at_epoch) / elapsed,
+                 "train_data_wait_s": self._wait / n, "train_step_s": self._step / n}
+        engine.state.metrics.update(stats)
+        logger.info("epoch %d: %d samples seen, %.1f h of training, %.2f samples/s this epoch; per iteration "
+                    "%.3f s waiting for data, %.3f s in the network step", engine.state.epoch, self.samples,
+                    self.wall_time_s / 3600, stats["train_samples_per_s"], stats["train_data_wait_s"],
+                    stats["train_step_s"])
+        self._epoch_start = now
+        self._samples_at_epoch = self.samples
+        self._reset()
 
 
 class ResumeHandler:

@@ -9,9 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from monai_rigidreg.bundle.loader import default_bundle_path, refuse_package_folders
 from monai_rigidreg.core.errors import InputError, OutputExistsError
-from monai_rigidreg.io.volumes import check_output_dir
 
 __all__ = ["add_parser", "run", "bundle_command", "check_train_args", "refuse_earlier_run", "RUN_FILES"]
 
@@ -62,6 +60,9 @@ def check_train_args(args: argparse.Namespace) -> None:
             ``moving``), a count or rate out of range, an unknown device, a missing ``--bundle`` config or
             ``--init-weights`` file.
     """
+    # imported here, as every heavy import of this module: `monai-rigidreg --help` builds this command's parser, and
+    # the bundle's loader, the volumes' checks and the datalist reader import torch
+    from monai_rigidreg.bundle.loader import default_bundle_path
     from monai_rigidreg.core.device import resolve_device
     from monai_rigidreg.evaluation.evaluate import load_datalist
 
@@ -110,6 +111,9 @@ def refuse_earlier_run(output_dir: Path, ckpt_dir: Path) -> None:
 
 def bundle_command(args: argparse.Namespace) -> list[str]:
     """The ``monai.bundle run`` command line for ``args`` (after :func:`check_train_args`)."""
+    from monai_rigidreg.bundle.loader import default_bundle_path, refuse_package_folders
+    from monai_rigidreg.io.volumes import check_output_dir
+
     bundle = (args.bundle or default_bundle_path()).resolve()
     check_train_args(args)
     sets = dict(kv.split("=", 1) for kv in args.set)

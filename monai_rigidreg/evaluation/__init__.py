@@ -1,16 +1,16 @@
-"""Evaluation of registration methods on datalists with known motion: the reference paper's Tables 1 and 2."""
+"""Evaluation of registration methods on datalists with known motion: the reference paper's Tables 1 and 2.
 
-from monai_rigidreg.evaluation.report import (
-    CaseResult,
-    format_report,
-    motion_conditions,
-    summarize,
-    write_report,
-)
+The names below are exported here on first use (PEP 562): importing the ``evaluate`` command's module imports no
+torch (``monai-rigidreg --help`` builds its parser).
+"""
 
-__all__ = ["CaseResult", "format_report", "motion_conditions", "summarize", "write_report"]
+from monai_rigidreg.core.lazy_exports import lazy_exports
 
-from monai_rigidreg.evaluation.evaluate import METHODS, evaluate_datalist, load_datalist  # noqa: E402
-from monai_rigidreg.evaluation.html_report import write_html_report  # noqa: E402
-
-__all__ += ["METHODS", "evaluate_datalist", "load_datalist", "write_html_report"]
+_MODULES = {
+    "report": ("CaseResult", "format_report", "motion_conditions", "summarize", "write_report"),
+    "evaluate": ("METHODS", "evaluate_datalist", "load_datalist"),
+    "html_report": ("write_html_report",),
+}
+_NAMES = {name: f"monai_rigidreg.evaluation.{module}" for module, names in _MODULES.items() for name in names}
+__all__ = list(_NAMES)
+__getattr__, __dir__ = lazy_exports(__name__, _NAMES)

@@ -1,8 +1,10 @@
 """Run registration methods over a datalist with known motion and report the paper's tables.
 
 Methods: ``network`` (the bundle's model, cascade steps as configured), ``network+refine`` (network, then
-SimpleITK Mattes MI from its estimate), ``sitk`` (classical SimpleITK, geometry-centred initialisation) and
-``elastix`` (itk-elastix's default rigid map, optional extra). All are measured on the same cases in one run.
+SimpleITK Mattes MI from its estimate), ``sitk`` (classical SimpleITK, geometry-centred initialisation),
+``elastix`` (itk-elastix's default rigid map, optional extra), and the peer tools ``ants`` (ANTs' rigid preset,
+``antspyx``) and ``greedy`` (``greedy -a -dof 6``, ``picsl-greedy``; both the ``bench`` extra,
+:mod:`monai_rigidreg.registration.peers`). All are measured on the same cases in one run.
 """
 
 from __future__ import annotations
@@ -34,16 +36,19 @@ from monai_rigidreg.evaluation.report import CaseResult, format_report, summariz
 from monai_rigidreg.io.staging import check_replaceable, staged_output_dir
 from monai_rigidreg.io.volumes import check_output_dir, load_volume
 from monai_rigidreg.registration.classical import elastix_available, register_elastix, register_sitk
+from monai_rigidreg.registration.peers import PEER_METHODS, peer_available, register_peer
 from monai_rigidreg.registration.registrar import RigidRegistrar
 
-__all__ = ["METHODS", "evaluate_datalist", "load_datalist", "body_points", "LoadedCase", "iter_cases"]
+__all__ = ["METHODS", "evaluate_datalist", "load_datalist", "body_points", "LoadedCase", "iter_cases",
+           "checked_items", "register_cases", "report_cases", "REPORT_FILES"]
 
 logger = logging.getLogger(__name__)
 
-METHODS = ("network", "network-regression", "network+refine", "sitk", "elastix")
+METHODS = ("network", "network-regression", "network+refine", "sitk", "elastix", "ants", "greedy")
 """``network``: the shipped network (regression + fine stage); ``network-regression``: its learned regression alone
 (``register(..., fine_stage=False)``); ``network+refine``: the network then SimpleITK Mattes MI; ``sitk``, ``elastix``:
-the classical baselines from the identity."""
+the classical baselines from the identity; ``ants``, ``greedy``: the peer tools' rigid registrations from the
+identity (:mod:`~monai_rigidreg.registration.peers`)."""
 
 
 def load_datalist(path: str | Path, key: str | None = None) -> tuple[list[dict[str, Any]], Path]:
@@ -219,6 +224,31 @@ def evaluate_datalist(
         OutputExistsError: ``output_dir`` is not empty and ``overwrite`` is False, or holds files other than a
             report's (:data:`REPORT_FILES`).
     """
+    items = checked_items(datalist, methods, output_dir, max_cases, key, max_overlays, overwrite)
+    if any(m.startswith("network") for m in methods) and registrar is None:
+        registrar = RigidRegistrar.from_bundle(bundle, device=device)
+    if output_dir is None:
+        return _evaluate_into(None, items, methods, registrar, progress, html, max_overlays, datalist)
+    out = Path(output_dir)
+    with staged_output_dir(out, overwrite, replaceable=REPORT_FILES) as tmp:
+        result = _evaluate_into(tmp, items, methods, registrar, progress, html, max_overlays, datalist)
+    result["paths"] = {k: out / Path(v).relative_to(tmp) for k, v in result["paths"].items()}
+    return result
+
+
+def checked_items(datalist: str | Path, methods: Sequence[str], output_dir: str | Path | None = None,
+                  max_cases: int | None = None, key: str | None = None, max_overlays: int = DEFAULT_MAX_OVERLAYS,
+                  overwrite: bool = False) -> list[dict[str, Any]]:
+    """What :func:`evaluate_datalist` checks before anything slow, in its order: the methods (and their optional
+    tools), ``max_cases`` and ``max_overlays``, the output folder, the datalist and every item's ground truth.
+    Read-only, so that every process of a distributed evaluation makes the same checks with the same outcome.
+
+    Returns:
+        the datalist's items (the first ``max_cases``), paths resolved.
+
+    Raises:
+        InputError, OutputExistsError: as :func:`evaluate_datalist`.
+    """
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         raise InputError(f"unknown method(s) {unknown}; choose from {METHODS}")
@@ -237,18 +267,13 @@ def evaluate_datalist(
     if max_cases is not None:
         items = items[: int(max_cases)]
     check_ground_truth(items, datalist)  # all of them before the first registration
-    if any(m.startswith("network") for m in methods) and registrar is None:
-        registrar = RigidRegistrar.from_bundle(bundle, device=device)
     if "elastix" in methods:
         if not elastix_available():
             raise InputError("method 'elastix' needs itk-elastix: pip install 'monai-rigidreg[elastix]'")
-    if output_dir is None:
-        return _evaluate_into(None, items, methods, registrar, progress, html, max_overlays, datalist)
-    out = Path(output_dir)
-    with staged_output_dir(out, overwrite, replaceable=REPORT_FILES) as tmp:
-        result = _evaluate_into(tmp, items, methods, registrar, progress, html, max_overlays, datalist)
-    result["paths"] = {k: out / Path(v).relative_to(tmp) for k, v in result["paths"].items()}
-    return result
+    for method in (m for m in methods if m in PEER_METHODS and not peer_available(m)):
+        raise InputError(f"method {method!r} needs {'antspyx' if method == 'ants' else 'picsl-greedy'}: pip install "
+                         "'monai-rigidreg[bench]'")
+    return items
 
 
 REPORT_FILES = ("cases.csv", "summary.json", "report.md", "report.html", OVERLAY_DIR)
@@ -261,9 +286,29 @@ def _evaluate_into(output_dir: Path | None, items: list[dict[str, Any]], methods
     nowhere)."""
     gallery = (OverlayGallery(Path(output_dir) / OVERLAY_DIR, methods, max_others=max_overlays)
                if html and output_dir is not None else None)
+    cases = register_cases(items, methods, registrar, progress, gallery)
+    if gallery is not None:
+        gallery.finish()
+    return report_cases(cases, output_dir, datalist, gallery.images if gallery else None,
+                        gallery.omitted if gallery else 0)
+
+
+def register_cases(items: Sequence[dict[str, Any]], methods: Sequence[str], registrar: Any, progress: bool = False,
+                   gallery: OverlayGallery | None = None, first_index: int = 0,
+                   index_of: Sequence[int] | None = None) -> list[CaseResult]:
+    """Every item registered by every method, in that order (one :class:`CaseResult` per item and method), the
+    overlays drawn into ``gallery`` while each case is loaded. A failed or interrupted run discards the gallery's
+    images and raises.
+
+    ``index_of``: each item's position in the whole evaluation (default ``first_index``, ``first_index + 1``...):
+    a result's index, the key of its overlay, is ``position * len(methods) + method``, as in the merged list of a
+    distributed evaluation.
+    """
+    positions = list(index_of) if index_of is not None else [first_index + k for k in range(len(items))]
     cases: list[CaseResult] = []
     try:
-        for case in tqdm(iter_cases(items), total=len(items), desc="evaluate", disable=not progress, unit="case"):
+        for k, case in enumerate(tqdm(iter_cases(items), total=len(items), desc="evaluate", disable=not progress,
+                                      unit="case")):
             first = len(cases)
             for method in methods:
                 pred, runtime, extra = _run_method(method, case.fixed, case.moving, case.fov, case.center, registrar)
@@ -271,20 +316,26 @@ def _evaluate_into(output_dir: Path | None, items: list[dict[str, Any]], methods
                 cases.append(CaseResult(case.case_id, method, case.truth.tolist(), np.asarray(pred).tolist(), tre,
                                         runtime, str(case.item.get("group", "")), extra))
             if gallery is not None:  # drawn now, while the volumes are loaded
-                gallery.add(case.fixed, case.moving, case.center, [(i, cases[i]) for i in range(first, len(cases))])
+                base = positions[k] * len(methods)
+                gallery.add(case.fixed, case.moving, case.center,
+                            [(base + j, cases[first + j]) for j in range(len(methods))])
     except BaseException:
         if gallery is not None:  # a failed (or interrupted) run leaves no partial output
             gallery.discard()
         raise
-    if gallery is not None:
-        gallery.finish()
+    return cases
+
+
+def report_cases(cases: list[CaseResult], output_dir: Path | None, datalist: str | Path,
+                 overlays: dict[int, Path] | None = None, omitted_overlays: int = 0) -> dict[str, Any]:
+    """The summary and report of ``cases``, written into ``output_dir`` (``None``: nowhere): ``cases.csv``,
+    ``summary.json``, ``report.md`` and, where ``overlays`` is given (result index -> PNG), ``report.html``."""
     summary = summarize(cases)
     report = format_report(summary)
     paths = write_report(cases, output_dir) if output_dir is not None else {}
-    if gallery is not None:
+    if overlays is not None and output_dir is not None:
         paths["html"] = write_html_report(cases, Path(output_dir) / "report.html", summary=summary,
-                                          overlays=gallery.images, datalist=datalist,
-                                          omitted_overlays=gallery.omitted)
+                                          overlays=overlays, datalist=datalist, omitted_overlays=omitted_overlays)
     return {"summary": summary, "report": report, "cases": cases, "paths": paths}
 
 
@@ -300,6 +351,8 @@ def _run_method(method: str, fixed: sitk.Image, moving: sitk.Image, fov: sitk.Im
         return res.params, time.perf_counter() - t0, extra
     if method == "sitk":
         res = register_sitk(fixed, moving, center=center, moving_mask=fov)
+    elif method in PEER_METHODS:
+        res = register_peer(method, fixed, moving, center=center, moving_mask=fov)
     else:
         res = register_elastix(fixed, moving, center=center)  # elastix's default rigid map, as specified
     return res.params, time.perf_counter() - t0, {"stop": res.stop_condition}

@@ -7,12 +7,14 @@ from pathlib import Path
 
 __all__ = ["add_parser", "run"]
 
+# copies of evaluation.evaluate.METHODS and evaluation.overlays.DEFAULT_MAX_OVERLAYS (tests/evaluation check that
+# they agree): those modules import torch, and `monai-rigidreg --help` builds this parser
+METHODS = ("network", "network-regression", "network+refine", "sitk", "elastix")
+DEFAULT_MAX_OVERLAYS = 20
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``evaluate`` sub-command to ``subparsers`` (``monai-rigidreg``'s); it sets ``func=run``."""
-    from monai_rigidreg.evaluation.evaluate import METHODS
-    from monai_rigidreg.evaluation.overlays import DEFAULT_MAX_OVERLAYS
-
     p = subparsers.add_parser(
         "evaluate",
         help="evaluate methods on a datalist with known motion (per-axis errors, TRE, success, time)",

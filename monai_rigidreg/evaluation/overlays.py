@@ -55,7 +55,9 @@ def needs_attention(case: CaseResult) -> bool:
 
 
 def overlay_methods(methods: Iterable[str]) -> list[str]:
-    """Methods that get overlays: the network methods run, or every method when none of them is a network."""
+    """Methods whose results get overlays in cases that neither failed nor were flagged (within the cap): the network
+    methods run, or every method when none of them is a network. A failed or flagged result gets one whatever its
+    method (a baseline's failure too)."""
     methods = list(dict.fromkeys(methods))
     network = [m for m in methods if m.startswith("network")]
     return network or methods
@@ -165,8 +167,10 @@ def write_overlay_png(rgb: np.ndarray, path: str | Path, max_bytes: int = OVERLA
 class OverlayGallery:
     """Overlays of the evaluated cases, drawn case by case while the volumes are loaded.
 
-    Every result that failed or was flagged gets an overlay; of the other cases, the first ``max_others`` do. One
-    PNG per (case, method) for :func:`overlay_methods`'s methods, named ``NNNNN_<case>_<method>.png`` (``NNNNN``:
+    Every result that failed or was flagged gets an overlay, whatever its method (SimpleITK's and elastix's
+    failures too), and so do :func:`overlay_methods`'s results of its case, to compare; of the other cases, the
+    first ``max_others`` get overlays of :func:`overlay_methods`'s results. One PNG per result drawn, named
+    ``NNNNN_<case>_<method>.png`` (``NNNNN``:
     the result's index in the list of results). After the last case, :meth:`finish` removes PNGs of that pattern
     left in ``folder`` by an earlier run, so that it holds this run's overlays only; after a failure,
     :meth:`discard` removes this run's PNGs and the folders it made, so that a failed run leaves no partial output.
@@ -199,14 +203,16 @@ class OverlayGallery:
     def add(self, fixed: sitk.Image, moving: sitk.Image, center: Sequence[float],
             results: Sequence[tuple[int, CaseResult]]) -> list[Path]:
         """Draw the overlays of one case: ``results`` are its ``(index, CaseResult)`` pairs (one per method)."""
-        chosen = [(i, c) for i, c in results if c.method in self.methods]
-        if not chosen:
-            return []
-        if not any(needs_attention(c) for _, c in chosen):
+        attention = [(i, c) for i, c in results if needs_attention(c)]  # failed or flagged, any method
+        others = [(i, c) for i, c in results if c.method in self.methods and not needs_attention(c)]
+        if not attention:  # nothing went wrong in this case: the overlay methods' results, within the cap
+            if not others:
+                return []
             if self._others >= self.max_others:
-                self.omitted += len(chosen)
+                self.omitted += len(others)
                 return []
             self._others += 1
+        chosen = sorted(attention + others, key=lambda item: item[0])
         display = self._display_of(fixed)
         written = []
         for i, c in chosen:

@@ -22,6 +22,7 @@ from monai_rigidreg.core.errors import InputError, signals_deferred
 from monai_rigidreg.core.geometry import invert_matrix
 from monai_rigidreg.export.elastix_params import ELASTIX_PARAMETER_FILE, write_elastix_transform
 from monai_rigidreg.export.qc_figure import qc_figure
+from monai_rigidreg.export.record import complete_record
 from monai_rigidreg.export.transform_files import write_transform
 from monai_rigidreg.io.staging import staged_output_dir, step
 from monai_rigidreg.io.volumes import resample, save_volume
@@ -67,7 +68,9 @@ def write_outputs(
     dicom_references: tuple[SeriesReference, SeriesReference] | None = None,
 ) -> dict[str, Path]:
     """Write :data:`OUTPUT_FILES` for ``result`` into ``output_dir`` (``names``: the inputs' display names for the
-    QC figure, e.g. their file names).
+    QC figure, e.g. their file names). A result without couch shifts or audit trail (a bare registrar's) gets the
+    defaults first, in place (:func:`~monai_rigidreg.export.record.complete_record`), so every ``result.json`` has
+    both.
 
     Everything is written to a hidden sibling folder first and renamed into place at the end, so a failure, Ctrl-C
     or SIGTERM leaves no partial output and no temporary folder (nor the parent folders this call created). An
@@ -89,6 +92,7 @@ def write_outputs(
     """
     if transform_format not in TRANSFORM_FORMATS:
         raise InputError(f"transform format must be one of {TRANSFORM_FORMATS}, got {transform_format!r}")
+    complete_record(result, moving, names=names)  # a result without couch shifts or audit trail gets the defaults
     out = Path(output_dir)
     fill = float(sitk.GetArrayViewFromImage(moving).min())  # io.resample's default: air for a CT
     with staged_output_dir(out, overwrite, replaceable=OUTPUT_FILES) as tmp:

@@ -21,8 +21,8 @@ import SimpleITK as sitk
 import monai_rigidreg
 from monai_rigidreg.io.dicom_series import header_tags, list_dicom_series, select_dicom_series
 
-__all__ = ["DICOM_TAGS", "input_record", "bundle_record", "software_versions", "registration_provenance",
-           "sha256_of"]
+__all__ = ["DICOM_TAGS", "IN_MEMORY", "input_record", "bundle_record", "software_versions",
+           "registration_provenance", "sha256_of"]
 
 DICOM_TAGS: dict[str, str] = {
     "study_uid": "0020|000d",
@@ -82,13 +82,21 @@ def software_versions() -> dict[str, str]:
     return versions
 
 
-def registration_provenance(fixed: str | Path, moving: str | Path, fixed_series_uid: str | None = None,
+IN_MEMORY = {"path": None, "format": "image in memory"}
+"""The input record of an image given as a ``SimpleITK.Image`` (no file to name)."""
+
+
+def registration_provenance(fixed: str | Path | None, moving: str | Path | None, fixed_series_uid: str | None = None,
                             moving_series_uid: str | None = None, bundle: dict[str, Any] | None = None,
                             device: str = "") -> dict[str, Any]:
-    """The ``"provenance"`` record of ``result.json``: inputs (:func:`input_record`), bundle
-    (:func:`bundle_record`), software versions, device, UTC time stamp and the command line."""
+    """The ``"provenance"`` record of ``result.json``: inputs (:func:`input_record`; ``None``: an image in memory,
+    :data:`IN_MEMORY`), bundle (:func:`bundle_record`), software versions, device, UTC time stamp and the command
+    line."""
+    def record(path: str | Path | None, series_uid: str | None) -> dict[str, Any]:
+        return dict(IN_MEMORY) if path is None else input_record(path, series_uid)
+
     return {
-        "inputs": {"fixed": input_record(fixed, fixed_series_uid), "moving": input_record(moving, moving_series_uid)},
+        "inputs": {"fixed": record(fixed, fixed_series_uid), "moving": record(moving, moving_series_uid)},
         "bundle": bundle or {},
         "software": software_versions(),
         "device": device,

@@ -1,24 +1,28 @@
 """Quality-control figure of a registration, after the reference paper's Fig. 4/5.
 
 Columns: (a) moving CBCT on the fixed grid before registration, (b) registered CBCT, (c) fixed CT, (d) difference
-before, (e) difference after (both with a colour bar), (f) overlay (fixed in red, registered in green); rows:
-axial, coronal, sagittal slices through the CBCT's centre (its isocentre) as placed by the registration, or the
-fixed image centre without a transform. Every panel carries the patient-orientation letters of its edges (from the
-fixed image's direction cosines, LPS: L/R, P/A, S/I), and the CBCT's field of view as registered is outlined
-(yellow) on the panels that show it: dark outside it is truncation, not misalignment.
+CT - CBCT before, (e) difference CT - registered CBCT (both in HU over a stated window, with a colour bar; grey
+outside the CBCT's field of view, where there is nothing to compare), (f) overlay (fixed in red, registered in
+green); rows: axial, coronal, sagittal slices. The "before" panels (a, d) pass through the CBCT's own centre on the
+CT grid, the others through the CBCT's centre as registered, or the fixed image centre without a transform. Each
+panel is zoomed to the CBCT's field of view (a 128 mm CBCT of a 500 mm CT fills its panel), whose outline is drawn in
+yellow: dark outside it is truncation, not misalignment. Every panel carries the patient-orientation letters of its
+edges (from the fixed image's direction cosines, LPS: L/R, P/A, S/I). :func:`qc_panels` computes what is drawn.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import SimpleITK as sitk
 
-from monai_rigidreg.core.geometry import Grid
+from monai_rigidreg.core.geometry import Grid, sitk_to_matrix
 from monai_rigidreg.io.volumes import check_output_path, resample
 
-__all__ = ["qc_figure", "orthogonal_slices", "resampled_slices", "edge_letters"]
+__all__ = ["qc_figure", "qc_panels", "orthogonal_slices", "resampled_slices", "edge_letters", "percentiles"]
 
 _LETTERS = (("R", "L"), ("A", "P"), ("I", "S"))
 """(negative, positive) end of each LPS axis: -x is patient right, +x left; -y anterior, +y posterior; -z inferior,
@@ -110,10 +114,12 @@ def _font(size: int):  # noqa: ANN202 - a PIL font
 
 def _to_rgb(img: np.ndarray, kind: str) -> np.ndarray:
     """``[h, w]`` (or ``[h, w, 3]`` overlay) display values -> ``[h, w, 3]`` uint8: ``gray`` in [0, 1], ``diff`` in
-    [-1, 1] through :data:`_DIFF_LUT`, ``rgb`` channels in [0, 1]."""
-    if kind == "diff":
-        idx = np.clip(np.rint((img + 1.0) * 127.5), 0, 255).astype(np.intp)
-        return (_DIFF_LUT[idx] * 255.0 + 0.5).astype(np.uint8)
+    [-1, 1] through :data:`_DIFF_LUT` (NaN: :data:`_NEUTRAL`), ``rgb`` channels in [0, 1]."""
+    if kind == "diff":  # NaN (outside the CBCT's field of view): _NEUTRAL
+        idx = np.clip(np.rint((np.nan_to_num(img) + 1.0) * 127.5), 0, 255).astype(np.intp)
+        rgb = (_DIFF_LUT[idx] * 255.0 + 0.5).astype(np.uint8)
+        rgb[np.isnan(img)] = _NEUTRAL
+        return rgb
     rgb = img if kind == "rgb" else np.repeat(img[..., None], 3, -1)
     return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
@@ -124,6 +130,134 @@ def _outline(mask: np.ndarray) -> np.ndarray:
     pad = np.pad(m, 1, mode="edge")
     inner = pad[:-2, 1:-1] & pad[2:, 1:-1] & pad[1:-1, :-2] & pad[1:-1, 2:]
     return m & ~inner
+
+
+def percentiles(values: np.ndarray, q: Sequence[float]) -> np.ndarray:
+    """``np.percentile(values, q)`` (its default, linear interpolation), the same numbers by the same arithmetic,
+    without its call of ``np.unique``, whose first use imports ``numpy.ma`` (about 50 ms of a ``register`` command's
+    start on a loaded 2-core machine, for the QC figure's window alone)."""
+    a = np.asarray(values).ravel()
+    n = a.size
+    qs = np.true_divide(np.asanyarray(q, dtype=np.float64), 100)
+    virtual = (n - 1) * qs  # numpy's virtual index of the linear method
+    previous = np.floor(virtual)
+    above, below = virtual >= n - 1, virtual < 0
+    prev_i = np.where(above, -1, np.where(below, 0, previous)).astype(np.intp)
+    next_i = np.where(above, -1, np.where(below, 0, previous + 1)).astype(np.intp)
+    part = np.partition(a, sorted({0, n - 1, *(prev_i % n).tolist(), *(next_i % n).tolist()}))
+    lo, hi = part[prev_i], part[next_i]
+    gamma = np.asanyarray(virtual - prev_i)
+    diff = hi - lo
+    out = np.add(lo, diff * gamma)
+    np.subtract(hi, diff * (1 - gamma), out=out, where=gamma >= 0.5, casting="unsafe", dtype=type(out.dtype))
+    return out
+
+
+_NEUTRAL = (150, 150, 150)
+"""The colour of a difference panel outside the CBCT's field of view (no value of the colour map is grey)."""
+FOV_MARGIN_MM = 2.0
+"""The CBCT's field of view is its grid's inscribed cylinder less this margin (as the registration's)."""
+
+
+def _fov_slices(fixed: sitk.Image, moving: sitk.Image, transform: sitk.Transform | None,
+                center_index: tuple[int, int, int]) -> list[np.ndarray]:
+    """Boolean masks of the three slices of :func:`orthogonal_slices`: the pixels inside the CBCT's field of view
+    (the inscribed cylinder of its grid, axis along its z index, less :data:`FOV_MARGIN_MM`) when ``transform``
+    (fixed -> moving; ``None``: the identity) places it."""
+    o, sp = np.asarray(fixed.GetOrigin()), np.asarray(fixed.GetSpacing())
+    d = np.asarray(fixed.GetDirection(), dtype=np.float64).reshape(3, 3)
+    m = np.eye(4) if transform is None else sitk_to_matrix(transform)
+    om, sm = np.asarray(moving.GetOrigin()), np.asarray(moving.GetSpacing())
+    dm = np.asarray(moving.GetDirection(), dtype=np.float64).reshape(3, 3)
+    n = np.asarray(moving.GetSize(), dtype=np.float64)
+    half = (n - 1) / 2
+    radius = min(half[0] * sm[0], half[1] * sm[1]) - FOV_MARGIN_MM
+    nx, ny, nz = fixed.GetSize()
+    x, y, z = center_index
+
+    def inside(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray) -> np.ndarray:
+        idx = np.stack(np.broadcast_arrays(ix, iy, iz)).reshape(3, -1).astype(np.float64)
+        points = o + (d @ (sp[:, None] * idx)).T  # fixed voxels, LPS mm
+        k = ((points @ m[:3, :3].T + m[:3, 3] - om) @ dm) / sm  # continuous indices in the CBCT
+        r2 = ((k[:, 0] - half[0]) * sm[0]) ** 2 + ((k[:, 1] - half[1]) * sm[1]) ** 2
+        keep = (r2 <= radius**2) & (k[:, 2] >= -0.5) & (k[:, 2] <= n[2] - 0.5)
+        return keep.reshape(np.broadcast_shapes(np.shape(ix), np.shape(iy), np.shape(iz)))
+
+    rows_y, cols_x = np.mgrid[0:ny, 0:nx]
+    rows_z, cols = np.mgrid[0:nz, 0:nx]
+    rows_zs, cols_y = np.mgrid[0:nz, 0:ny]
+    return [inside(cols_x, rows_y, np.array(z)), np.flipud(inside(cols, np.array(y), rows_z)),
+            np.flipud(inside(np.array(x), cols_y, rows_zs))]
+
+
+def _crop_box(mask: np.ndarray | None, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
+    """``(row0, row1, col0, col1)``: the bounding box of ``mask`` with a margin (6 % of its side, at least 2 pixels),
+    within ``shape``; the whole slice without a mask or where the field of view misses it."""
+    if mask is None or not mask.any():
+        return 0, shape[0], 0, shape[1]
+    box = []
+    for axis in (1, 0):  # rows: pixels of any column; columns: of any row
+        hit = np.flatnonzero(mask.any(axis))
+        pad = max(2, round(0.06 * (hit[-1] + 1 - hit[0])))
+        box += [max(0, hit[0] - pad), min(mask.shape[1 - axis], hit[-1] + 1 + pad)]
+    return tuple(int(v) for v in box)  # type: ignore[return-value]
+
+
+def _center_of(image: sitk.Image, point: Any) -> tuple[int, int, int]:
+    idx = image.TransformPhysicalPointToIndex(tuple(float(v) for v in point))
+    return tuple(int(np.clip(i, 0, n - 1)) for i, n in zip(idx, image.GetSize()))  # type: ignore[return-value]
+
+
+def qc_panels(fixed: sitk.Image, moving: sitk.Image, registered: sitk.Image,
+              window: tuple[float, float] | None = None, transform: sitk.Transform | None = None) -> dict[str, Any]:
+    """What the QC figure shows, before it is drawn (:func:`qc_figure`'s arguments).
+
+    Returns:
+        ``{"window": (lo, hi) HU, "diff_window_hu": X, "titles": six column titles (and "subtitles"), "centers":
+        {"before", "after"} slice indices on the fixed grid, "fov": {"before", "after"}: three boolean masks each
+        (``None`` without a transform), "boxes": {"before", "after"}: three ``(row0, row1, col0, col1)`` crops each,
+        "pixel_mm": three ``(column, row)`` pixel sizes (mm), "panels": three rows of six ``(values, kind)``}``:
+        ``kind`` ``"gray"`` (values in [0, 1]), ``"diff"`` (CT - CBCT over ``X`` HU, in [-1, 1]; NaN outside the
+        field of view, drawn grey) or ``"rgb"``; the values already cropped to their box (panels a, d: "before").
+    """
+    arr_f = sitk.GetArrayViewFromImage(fixed)
+    # the window from every 8th voxel (2 per axis): the percentiles of a 256^3 CT to within a few HU, in 1/8 the time
+    lo, hi = window if window is not None else (float(v) for v in percentiles(arr_f[::2, ::2, ::2], [1, 99]))
+    diff_hu = max(10.0, round((hi - lo) / 20.0) * 10.0)  # half the display window, to 10 HU
+    centers = {"before": None, "after": None}
+    fov: dict[str, Any] = {"before": None, "after": None}
+    if transform is not None:
+        c_m = moving.TransformContinuousIndexToPhysicalPoint([(n - 1) / 2 for n in moving.GetSize()])
+        # before: the CBCT where it lies on the CT grid; after: its centre c_m sits at T^-1(c_m) once registered
+        centers = {"before": _center_of(fixed, c_m),
+                   "after": _center_of(fixed, transform.GetInverse().TransformPoint(c_m))}
+        fov = {k: _fov_slices(fixed, moving, t, centers[k]) for k, t in (("before", None), ("after", transform))}
+    before = resampled_slices(moving, fixed, None, centers["before"])
+    fixed_before = orthogonal_slices(fixed, centers["before"])
+    after, fixed_after = orthogonal_slices(registered, centers["after"]), orthogonal_slices(fixed, centers["after"])
+    boxes = {k: [_crop_box(None if fov[k] is None else fov[k][r], fixed_after[r].shape) for r in range(3)]
+             for k in ("before", "after")}
+    sx, sy, sz = fixed.GetSpacing()
+    panels = []
+    for r in range(3):
+        b, fb, g, f = (_window(v[r], lo, hi) for v in (before, fixed_before, after, fixed_after))
+        d_before, d_after = (fb - b) * (hi - lo) / diff_hu, (f - g) * (hi - lo) / diff_hu  # CT - CBCT, in HU / X
+        if fov["after"] is not None:
+            d_before = np.where(fov["before"][r], d_before, np.nan)
+            d_after = np.where(fov["after"][r], d_after, np.nan)
+        row = [(b, "gray", "before"), (g, "gray", "after"), (f, "gray", "after"), (np.clip(d_before, -1, 1), "diff",
+               "before"), (np.clip(d_after, -1, 1), "diff", "after"), (np.stack([f, g, np.zeros_like(f)], -1), "rgb",
+               "after")]
+        panels.append([(v[slice(*boxes[k][r][:2]), slice(*boxes[k][r][2:])], kind) for v, kind, k in row])
+    x_hu = f"{diff_hu:.0f}"
+    return {
+        "window": (lo, hi), "diff_window_hu": diff_hu, "centers": centers, "fov": fov, "boxes": boxes,
+        "pixel_mm": [(sx, sy), (sx, sz), (sy, sz)], "panels": panels,
+        "titles": ["(a) moving (before)", "(b) registered", "(c) fixed", "(d) difference = CT - CBCT before",
+                   "(e) difference = CT - registered CBCT", "(f) overlay R=fixed G=reg."],
+        "subtitles": ["", "", "", f"window \u00b1{x_hu} HU, grey: no CBCT", f"window \u00b1{x_hu} HU, grey: no CBCT",
+                      ""],
+    }
 
 
 def qc_figure(
@@ -146,9 +280,11 @@ def qc_figure(
         path: output PNG path.
         title: figure title (e.g. the six parameters).
         overwrite: allow replacing an existing file.
-        window: display window (default: the 1st-99th percentile of the fixed image).
-        transform: the registration (fixed -> moving); with it the slices pass through the CBCT centre as
-            registered and the CBCT's field of view (its grid's extent) is outlined on panels (b), (e) and (f).
+        window: display window (default: the 1st-99th percentile of the fixed image); the difference panels show
+            CT - CBCT over +-half of it (to 10 HU).
+        transform: the registration (fixed -> moving); with it the slices pass through the CBCT centre (before: as
+            it lies; after: as registered), the panels are zoomed to the CBCT's field of view, which is outlined, and
+            the difference panels are grey outside it.
         names: display names of the fixed and moving inputs (e.g. file names), shown under the title.
 
     Drawn with Pillow (panels, colour bars, the orientation letters and the titles): with matplotlib (its imports,
@@ -158,39 +294,22 @@ def qc_figure(
     from PIL import Image, ImageDraw
 
     p = check_output_path(path, overwrite)
-    arr_f = sitk.GetArrayViewFromImage(fixed)
-    # the window from every 8th voxel (2 per axis): the percentiles of a 256^3 CT to within a few HU, in 1/8 the time
-    lo, hi = window if window is not None else (float(v) for v in np.percentile(arr_f[::2, ::2, ::2], [1, 99]))
-    center_index, fov = None, None
-    if transform is not None:
-        # the CBCT centre c_m sits at T^-1(c_m) in the fixed frame once registered
-        c_m = moving.TransformContinuousIndexToPhysicalPoint([(n - 1) / 2 for n in moving.GetSize()])
-        c_f = transform.GetInverse().TransformPoint(c_m)
-        idx = fixed.TransformPhysicalPointToIndex(c_f)
-        center_index = tuple(int(np.clip(i, 0, n - 1)) for i, n in zip(idx, fixed.GetSize()))
-        ones = sitk.Image(moving.GetSize(), sitk.sitkUInt8) + 1
-        ones.CopyInformation(moving)
-        fov = resampled_slices(ones, fixed, transform, center_index, "nearest", 0)
-    # "before": the CBCT on the CT grid with the identity, on the three slices only
-    slices = [resampled_slices(moving, fixed, None, center_index), orthogonal_slices(registered, center_index),
-              orthogonal_slices(fixed, center_index)]
+    q = qc_panels(fixed, moving, registered, window, transform)
     letters = edge_letters(fixed)
-    sx, sy, sz = fixed.GetSpacing()
-    # display size of each row's slices: physical proportions, the longer side _PANEL pixels
-    extents = [(slices[2][0].shape[1] * sx, slices[2][0].shape[0] * sy),
-               (slices[2][1].shape[1] * sx, slices[2][1].shape[0] * sz),
-               (slices[2][2].shape[1] * sy, slices[2][2].shape[0] * sz)]
-    sizes = [(max(1, round(_PANEL * w / max(w, h))), max(1, round(_PANEL * h / max(w, h)))) for w, h in extents]
-    titles = ["(a) moving (before)", "(b) registered", "(c) fixed", "(d) diff before", "(e) diff after",
-              "(f) overlay R=fixed G=reg."]
+    # display sizes: physical proportions, one scale per row (the longest side of its panels _PANEL pixels)
+    sizes = []
+    for r in range(3):
+        mm = [(v.shape[1] * q["pixel_mm"][r][0], v.shape[0] * q["pixel_mm"][r][1]) for v, _ in q["panels"][r]]
+        scale = _PANEL / max(max(w, h) for w, h in mm)
+        sizes.append([(max(1, round(w * scale)), max(1, round(h * scale))) for w, h in mm])
     views = ["axial", "coronal", "sagittal"]
     font, small, big = _font(12), _font(9), _font(14)
     bar_space = _BAR + 34  # the colour bar and its tick labels right of a difference panel
     col_w = [_PANEL + (bar_space if c in (3, 4) else 0) for c in range(6)]
-    left, top = 26, 22 + (20 if title else 0) + (18 if names else 0)
+    left, top = 26, 34 + (20 if title else 0) + (18 if names else 0)
     width = left + sum(col_w) + _GAP * 6
-    # each row as tall as its slices (at least _MIN_ROW pixels, for its label and colour bars)
-    row_h = [max(h, _MIN_ROW) for _, h in sizes]
+    # each row as tall as its tallest panel (at least _MIN_ROW pixels, for its label and colour bars)
+    row_h = [max(max(h for _, h in sizes[r]), _MIN_ROW) for r in range(3)]
     row_y = [top + sum(row_h[k] + _GAP for k in range(r)) for r in range(3)]
     height = row_y[2] + row_h[2] + 6
     canvas = Image.new("RGB", (width, height), "white")
@@ -202,39 +321,47 @@ def qc_figure(
             draw.text((width / 2, y), line, fill="black", font=f, anchor="ma")
             y += 20 if f is big else 18
     xs = [left + sum(col_w[:c]) + _GAP * c for c in range(6)]
-    for c, name in enumerate(titles):
-        draw.text((xs[c] + _PANEL / 2, top - 4), name, fill="black", font=font, anchor="md")
+    for c, (name, note) in enumerate(zip(q["titles"], q["subtitles"])):
+        mid = xs[c] + col_w[c] / 2
+        draw.text((mid, top - 16), name, fill="black", font=_fitted(draw, name, col_w[c] + _GAP, 12), anchor="md")
+        if note:
+            draw.text((mid, top - 4), note, fill="black", font=small, anchor="md")
     for r in range(3):
-        b, g, f = (_window(s[r], lo, hi) for s in slices)
-        panels = [(b, "gray"), (g, "gray"), (f, "gray"), (b - f, "diff"), (g - f, "diff"),
-                  (np.stack([f, g, np.zeros_like(f)], -1), "rgb")]
-        w, h = sizes[r]
-        y0 = row_y[r] + (row_h[r] - h) // 2
         label = Image.new("RGB", (row_h[r], 16), "white")
         ImageDraw.Draw(label).text((row_h[r] / 2, 8), views[r], fill="black", font=font, anchor="mm")
         canvas.paste(label.rotate(90, expand=True), (4, row_y[r]))
-        outline = None
-        if fov is not None and fov[r].min() == 0 and fov[r].max() > 0:
-            mask = Image.fromarray((fov[r] > 0).astype(np.uint8) * 255).resize((w, h), Image.Resampling.NEAREST)
-            outline = _outline(np.asarray(mask) > 0)
-        for c, (img, kind) in enumerate(panels):
-            x0 = xs[c] + (_PANEL - w) // 2
+        for c, (img, kind) in enumerate(q["panels"][r]):
+            w, h = sizes[r][c]
+            x0, y0 = xs[c] + (_PANEL - w) // 2, row_y[r] + (row_h[r] - h) // 2
             tile = np.asarray(Image.fromarray(_to_rgb(img, kind)).resize((w, h), Image.Resampling.NEAREST)).copy()
-            if outline is not None and c in (1, 4, 5):
-                tile[outline] = _YELLOW
+            group = "before" if c in (0, 3) else "after"
+            if q["fov"][group] is not None and c != 2:
+                r0, r1, c0, c1 = q["boxes"][group][r]
+                mask = q["fov"][group][r][r0:r1, c0:c1]
+                if mask.any() and not mask.all():
+                    shown = Image.fromarray(mask.astype(np.uint8) * 255).resize((w, h), Image.Resampling.NEAREST)
+                    tile[_outline(np.asarray(shown) > 0)] = _YELLOW
             canvas.paste(Image.fromarray(tile), (x0, y0))
             if kind == "diff":
                 draw.rectangle((x0 - 1, y0 - 1, x0 + w, y0 + h), outline="black")
-                _colour_bar(draw, xs[c] + (_PANEL + w) // 2 + 6, row_y[r], row_h[r], small)
+                _colour_bar(draw, xs[c] + (_PANEL + w) // 2 + 6, row_y[r], row_h[r], small, q["diff_window_hu"])
             _letter_edges(draw, letters[r], (x0, y0, w, h), small)
-    # the colour bars' meaning, once: the difference in units of the display window
-    draw.text((xs[4] + _PANEL + 4, top - 4), "diff / window", fill="black", font=small, anchor="ld")
     canvas.save(p, format="PNG", compress_level=1)
     return p
 
 
-def _colour_bar(draw, x: int, y: int, height: int, font) -> None:  # noqa: ANN001 - PIL objects
-    """A vertical colour bar of the difference map from -1 (bottom) to 1 (top), with ticks at -1, -0.5, 0, 0.5, 1."""
+def _fitted(draw, text: str, width: float, size: int):  # noqa: ANN001, ANN202 - PIL objects
+    """The largest font of at most ``size`` points (down to 8) in which ``text`` fits ``width`` pixels."""
+    for points in range(size, 7, -1):
+        font = _font(points)
+        if draw.textlength(text, font=font) <= width:
+            return font
+    return _font(8)
+
+
+def _colour_bar(draw, x: int, y: int, height: int, font, window_hu: float) -> None:  # noqa: ANN001 - PIL objects
+    """A vertical colour bar of the difference map from -``window_hu`` (bottom) to +``window_hu`` HU (top), with ticks
+    at -1, -0.5, 0, 0.5 and 1 times it, labelled in HU."""
     for k in range(height):
         value = 1.0 - 2.0 * k / max(height - 1, 1)
         rgb = _to_rgb(np.array([[value]]), "diff")[0, 0]
@@ -243,7 +370,7 @@ def _colour_bar(draw, x: int, y: int, height: int, font) -> None:  # noqa: ANN00
     for value in (-1.0, -0.5, 0.0, 0.5, 1.0):
         ty = y + round((1.0 - value) / 2.0 * (height - 1))
         draw.line((x + _BAR, ty, x + _BAR + 2, ty), fill="black")
-        draw.text((x + _BAR + 4, ty), f"{value:g}", fill="black", font=font, anchor="lm")
+        draw.text((x + _BAR + 4, ty), f"{value * window_hu:g}", fill="black", font=font, anchor="lm")
 
 
 def _letter_edges(draw, letters: dict[str, str], box: tuple[int, int, int, int], font) -> None:  # noqa: ANN001

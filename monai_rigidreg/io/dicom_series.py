@@ -8,9 +8,12 @@ Spatial Registration object with :func:`format_ds` and :func:`is_valid_uid`.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import re
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +41,29 @@ _DS_MAX_CHARS = 16
 _UID_PATTERN = re.compile(r"(0|[1-9][0-9]*)(\.(0|[1-9][0-9]*))*")  # PS3.5 section 9.1, at most 64 characters
 
 
+_ITK_QUIET_LOCK = threading.Lock()
+_itk_quiet: list[Any] = [0, True]  # [how many blocks are in itk_warnings_off, the display setting before the first]
+
+
+@contextlib.contextmanager
+def itk_warnings_off() -> Iterator[None]:
+    """ITK's warnings (printed to stderr, e.g. GDCM's "No Series were found" for a folder without DICOM files) off
+    for the block: this module says what went wrong, in words. Safe from several threads (both inputs are read at
+    once): the display setting is restored when the last block ends."""
+    with _ITK_QUIET_LOCK:
+        if _itk_quiet[0] == 0:
+            _itk_quiet[1] = sitk.ProcessObject.GetGlobalWarningDisplay()
+            sitk.ProcessObject.SetGlobalWarningDisplay(False)
+        _itk_quiet[0] += 1
+    try:
+        yield
+    finally:
+        with _ITK_QUIET_LOCK:
+            _itk_quiet[0] -= 1
+            if _itk_quiet[0] == 0:
+                sitk.ProcessObject.SetGlobalWarningDisplay(_itk_quiet[1])
+
+
 def list_dicom_series(directory: str | Path) -> dict[str, list[str]]:
     """Image series in a DICOM directory: ``{series_uid: [file names sorted by slice position]}``.
 
@@ -46,11 +72,12 @@ def list_dicom_series(directory: str | Path) -> dict[str, list[str]]:
     """
     d = Path(directory)
     reader = sitk.ImageSeriesReader()
-    try:
-        uids = reader.GetGDCMSeriesIDs(str(d))
-    except RuntimeError as exc:  # pragma: no cover - GDCM rarely raises here
-        raise InputError(f"could not scan the directory for DICOM series ({exc})", d) from exc
-    return {uid: list(reader.GetGDCMSeriesFileNames(str(d), uid)) for uid in uids}
+    with itk_warnings_off():  # a folder without DICOM files: GDCM's warning; select_dicom_series says it in words
+        try:
+            uids = reader.GetGDCMSeriesIDs(str(d))
+        except RuntimeError as exc:  # pragma: no cover - GDCM rarely raises here
+            raise InputError(f"could not scan the directory for DICOM series ({exc})", d) from exc
+        return {uid: list(reader.GetGDCMSeriesFileNames(str(d), uid)) for uid in uids}
 
 
 def select_dicom_series(directory: str | Path, series_uid: str | None = None,
@@ -64,7 +91,8 @@ def select_dicom_series(directory: str | Path, series_uid: str | None = None,
     d = Path(directory)
     series = list_dicom_series(d) if series is None else series
     if not series:
-        raise InputError("directory holds no DICOM image series", d)
+        raise InputError("directory holds no DICOM image series (give a DICOM series folder, or an image file: "
+                         "NIfTI, MHA, NRRD)", d)
     if series_uid is None:
         return max(series, key=lambda uid: len(series[uid]))
     if series_uid not in series:
@@ -132,14 +160,11 @@ def read_dicom_series(directory: Path, series_uid: str | None, warnings: list[st
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames(files)
     reader.MetaDataDictionaryArrayUpdateOn()
-    warn = sitk.ProcessObject.GetGlobalWarningDisplay()
-    sitk.ProcessObject.SetGlobalWarningDisplay(False)  # ITK's "non uniform sampling" note: handled below, in words
     try:
-        image = reader.Execute()
+        with itk_warnings_off():  # ITK's "non uniform sampling" note: handled below, in words
+            image = reader.Execute()
     except RuntimeError as exc:
         raise InputError(f"could not read DICOM series {series_uid} ({first_line(exc)})", directory) from exc
-    finally:
-        sitk.ProcessObject.SetGlobalWarningDisplay(warn)
     return _on_true_slice_positions(image, reader, files, directory, series_uid,
                                     [] if warnings is None else warnings)
 

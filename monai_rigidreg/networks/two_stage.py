@@ -64,15 +64,31 @@ class TwoStageRigidNet(nn.Module):
             "exports by tracing only)")
 
     def forward_stages(self, moving: torch.Tensor, fixed: torch.Tensor,
-                       fixed_weight: torch.Tensor | None = None) -> dict[str, Any]:
+                       fixed_weight: torch.Tensor | None = None, context: torch.Tensor | None = None
+                       ) -> dict[str, Any]:
         """Both estimates (see :data:`STAGE_KEYS`); ``moving``, ``fixed``: ``[B, C, x, y, z]`` on the network grid.
 
         ``fixed_weight``: optional ``[B, 1, x, y, z]`` match-region weights in [0, 1] on the fixed grid (region of
         interest, bone, body without couch): they weigh the learned network's cells in its rigid fit (a regression
         with ``forward_levels``; an MLP regression sees the whole grid) and the fine stage's residuals.
+        ``context``: the CT on the context grid for a regression that takes one (``takes_context``); such a
+        regression also takes it as the second block of ``fixed``'s channels (``[B, 2 * C, ...]``), which is how
+        :class:`~monai_rigidreg.registration.RigidRegistrar` passes it through the cascade. Training (``train()``
+        mode) adds the levels' match records under ``"matches"``.
         """
         extra: dict[str, Any] = {}
-        if hasattr(self.regression, "forward_levels"):
+        c = self.in_channels
+        if getattr(self.regression, "takes_context", False) and context is None and fixed.shape[1] == 2 * c:
+            fixed, context = fixed[:, :c], fixed[:, c:]  # the registrar's form: the context as more fixed channels
+        if getattr(self.regression, "takes_context", False):
+            levels, records = self.regression.forward_levels(moving, fixed, context, fixed_weight, matches=True)
+            coarse = levels[-1]
+            extra["levels"] = levels[:-1]
+            if self.training:
+                extra["matches"] = records
+        elif context is not None:
+            raise ValueError(f"{type(self.regression).__name__} takes no CT context")
+        elif hasattr(self.regression, "forward_levels"):
             levels = (self.regression.forward_levels(moving, fixed) if fixed_weight is None
                       else self.regression.forward_levels(moving, fixed, fixed_weight))
             coarse = levels[-1]
@@ -91,10 +107,17 @@ class TwoStageRigidNet(nn.Module):
         return self.forward_stages(moving, fixed, fixed_weight)["params"]
 
     def forward(self, image: torch.Tensor, stages: bool = False, fixed_weight: torch.Tensor | None = None) -> Any:
-        """``[B, 2 * C, x, y, z]`` -> ``[B, 6]`` (or the :meth:`forward_stages` dict with ``stages=True``)."""
-        if image.shape[1] != 2 * self.in_channels:
-            raise ValueError(f"expected {2 * self.in_channels} channels (moving, fixed), got {image.shape[1]}")
-        out = self.forward_stages(image[:, : self.in_channels], image[:, self.in_channels :], fixed_weight)
+        """``[B, 2 * C, x, y, z]`` (moving, fixed) -> ``[B, 6]`` (or the :meth:`forward_stages` dict with
+        ``stages=True``); a regression that takes a CT context (``takes_context``) also accepts ``[B, 3 * C, ...]``,
+        the third block of channels the CT on its context grid."""
+        c = self.in_channels
+        context = None
+        if getattr(self.regression, "takes_context", False) and image.shape[1] == 3 * c:
+            context = image[:, 2 * c:]
+            image = image[:, : 2 * c]
+        if image.shape[1] != 2 * c:
+            raise ValueError(f"expected {2 * c} channels (moving, fixed), got {image.shape[1]}")
+        out = self.forward_stages(image[:, :c], image[:, c:], fixed_weight, context)
         return out if stages else out["params"]
 
 

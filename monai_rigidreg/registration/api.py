@@ -15,6 +15,7 @@ device and kept for later calls.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import SimpleITK as sitk
@@ -22,7 +23,9 @@ import torch
 from torch import nn
 
 from monai_rigidreg.core.device import resolve_device
+from monai_rigidreg.export.record import complete_record
 from monai_rigidreg.io.dicom_series import check_distinct_inputs
+from monai_rigidreg.io.volumes import as_image
 from monai_rigidreg.registration.match_region import RoiLike
 from monai_rigidreg.registration.registrar import RigidRegistrar
 from monai_rigidreg.registration.result import RegistrationResult
@@ -93,7 +96,9 @@ def register(
 
     Returns:
         :class:`RegistrationResult` with ``params`` (mm/deg, fixed -> moving, about the fixed image centre),
-        ``transform`` (``Euler3DTransform``), ``registered``, ``timings`` and ``confidence``.
+        ``transform`` (``Euler3DTransform``), ``registered``, ``timings``, ``confidence``, ``couch_shift`` (at the
+        CBCT's centre, head-first supine assumed: :func:`~monai_rigidreg.export.record.complete_record`) and
+        ``provenance`` (the audit trail, with the input paths where paths were given).
 
     Raises:
         InputError: bad input, e.g. both paths naming the same file or the same DICOM series, or a constant
@@ -110,6 +115,15 @@ def register(
         if key not in _DEFAULT_REGISTRARS:
             _DEFAULT_REGISTRARS[key] = RigidRegistrar.from_bundle(bundle, device=device)
         registrar = _DEFAULT_REGISTRARS[key]
-    return registrar(fixed, moving, refine=refine, cascade_steps=cascade_steps, resample_moving=resample_moving,
-                     moving_fov=moving_fov, fine_stage=fine_stage, global_init=global_init, roi=roi, match=match,
-                     keep_couch=keep_couch, allow_swapped=allow_swapped)
+    # read here (as the registrar would: the same reader and checks), so that the result's couch shifts can be placed
+    # at the CBCT's centre
+    t_load = time.perf_counter()
+    fixed_img, moving_img = as_image(fixed, "fixed"), as_image(moving, "moving")
+    t_load = time.perf_counter() - t_load
+    result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps,
+                       resample_moving=resample_moving, moving_fov=moving_fov, fine_stage=fine_stage,
+                       global_init=global_init, roi=roi, match=match, keep_couch=keep_couch,
+                       allow_swapped=allow_swapped)
+    for stage in ("load", "total"):
+        result.timings[stage] = result.timings.get(stage, 0.0) + t_load
+    return complete_record(result, moving_img, fixed, moving, bundle=registrar.source, device=str(registrar.device))

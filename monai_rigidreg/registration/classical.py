@@ -17,7 +17,7 @@ import SimpleITK as sitk
 
 from monai_rigidreg.core.geometry import Grid, matrix_to_params, params_to_sitk, sitk_to_matrix
 
-__all__ = ["ClassicalResult", "register_sitk", "register_elastix", "elastix_available"]
+__all__ = ["ClassicalResult", "register_sitk", "register_elastix", "elastix_available", "moving_footprint"]
 
 logger = logging.getLogger(__name__)
 
@@ -156,12 +156,7 @@ def register_elastix(
     pobj.AddParameterMap(pobj.GetDefaultParameterMap("rigid"))
     # the CBCT usually covers less than the CT: sample the CT only where the CBCT (or its mask) lies, otherwise
     # elastix stops with "too many samples map outside the moving image"
-    footprint = moving_mask if moving_mask is not None else sitk.Image(moving.GetSize(), sitk.sitkUInt8) + 1
-    if moving_mask is None:
-        footprint.CopyInformation(moving)
-    fixed_mask = sitk.Resample(sitk.Cast(footprint, sitk.sitkUInt8), fixed, sitk.Transform(),
-                               sitk.sitkNearestNeighbor, 0)
-    kwargs = {"fixed_mask": _sitk_to_itk(fixed_mask)}
+    kwargs = {"fixed_mask": _sitk_to_itk(moving_footprint(fixed, moving, moving_mask))}
     c = Grid.from_sitk(fixed).center() if center is None else np.asarray(center, dtype=np.float64)
     try:
         _, result = itk.elastix_registration_method(
@@ -178,6 +173,15 @@ def register_elastix(
     tfm.SetRotation(*p[:3])
     tfm.SetTranslation(p[3:6])
     return ClassicalResult(matrix_to_params(sitk_to_matrix(tfm), c), c, runtime_s=time.perf_counter() - t0)
+
+
+def moving_footprint(fixed: sitk.Image, moving: sitk.Image, moving_mask: sitk.Image | None = None) -> sitk.Image:
+    """The moving image's box (or ``moving_mask``) on the fixed grid at the identity (uint8, 0 / 1): the fixed-image
+    mask the classical baselines sample the CT in, since a CBCT usually covers less than the CT."""
+    footprint = moving_mask if moving_mask is not None else sitk.Image(moving.GetSize(), sitk.sitkUInt8) + 1
+    if moving_mask is None:
+        footprint.CopyInformation(moving)
+    return sitk.Resample(sitk.Cast(footprint, sitk.sitkUInt8), fixed, sitk.Transform(), sitk.sitkNearestNeighbor, 0)
 
 
 def _sitk_to_itk(image: sitk.Image):

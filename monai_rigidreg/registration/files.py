@@ -8,10 +8,11 @@ from pathlib import Path
 from typing import Any
 
 from monai_rigidreg.core.errors import InputError
-from monai_rigidreg.core.geometry import PARAM_NAMES, Grid
-from monai_rigidreg.export.couch_shifts import couch_shifts, lps_to_iec
+from monai_rigidreg.core.geometry import PARAM_NAMES
+from monai_rigidreg.export.couch_shifts import lps_to_iec
 from monai_rigidreg.export.outputs import NO_REG_FOR_FILES, TRANSFORM_FORMATS, dicom_references, write_outputs
 from monai_rigidreg.export.provenance import registration_provenance
+from monai_rigidreg.export.record import ASSUMED_POSITION_SOURCE, couch_shift_record
 from monai_rigidreg.io.dicom_series import check_distinct_inputs
 from monai_rigidreg.io.volumes import load_volume
 from monai_rigidreg.registration.inputs import check_register_inputs
@@ -100,16 +101,11 @@ def register_files(
     if reg_warning:
         logger.warning("%s", reg_warning)
         result.details.setdefault("warnings", []).append(reg_warning)
-    source = "--isocenter" if iso is not None else "CBCT centre (default)"
-    if iso is None:
-        iso = Grid.from_sitk(moving_img).center()
     if position_problem:
         logger.warning("%s", position_problem)
         result.details.setdefault("warnings", []).append(position_problem)
-        result.couch_shift = {"unavailable": position_problem}
-    else:
-        result.couch_shift = {**couch_shifts(result.matrix, position, iso).to_dict(), "isocentre_source": source,
-                              "patient_position_source": position_source}
+    result.couch_shift = couch_shift_record(result.matrix, moving_img, position, position_source, iso,
+                                            position_problem)
     paths = write_outputs(result, fixed_img, moving_img, output_dir, overwrite=overwrite, qc=qc,
                           names=(Path(fixed).name, Path(moving).name), transform_format=transform_format,
                           dicom_references=refs)
@@ -129,7 +125,7 @@ def _patient_position(fixed_record: dict[str, Any], given: str | None) -> tuple[
         lps_to_iec(given)  # InputError for an unsupported value the user gave: before any work
         return given.strip().upper(), "--patient-position", ""
     if fixed_record.get("format") != "dicom":
-        return None, "assumed (no DICOM header)", ""
+        return None, ASSUMED_POSITION_SOURCE, ""
     header = fixed_record.get("patient_position") or None
     if header is None:
         return None, "assumed (no Patient Position in the CT's header)", ""

@@ -36,6 +36,7 @@ class NetworkRuns:
     RigidRegistrar` does)."""
 
     grid_spec: NetworkGridSpec
+    context_grid_spec: NetworkGridSpec | None  # the CT context's grid, for a regression that takes one
     network: nn.Module
     device: torch.device
     hu_range: tuple[float, float]
@@ -111,6 +112,15 @@ class NetworkRuns:
             fixed_t = without_couch(fixed_t, self._on_grid(body, grid, "bilinear", 0.0), self.hu_range)
         return grid, fixed_t, moving_t
 
+    def _context(self, fixed_img: sitk.Image, grid: Grid, body: sitk.Image | None) -> torch.Tensor:
+        """``[1, *context size]`` normalized CT on the context grid centred as ``grid`` (a regression that takes a
+        CT context: same centre, ``context_factor`` times the spacing), the couch removed as on the network grid."""
+        ctx_grid = self.context_grid_spec.centered(grid.center())
+        ctx = self.preprocess(fixed_img, ctx_grid)
+        if body is not None:
+            ctx = without_couch(ctx, self._on_grid(body, ctx_grid, "bilinear", 0.0), self.hu_range)
+        return ctx
+
     def _run_from(self, fixed_img: sitk.Image, moving_img: sitk.Image, start: np.ndarray, steps: int | None,
                   weights: Sequence[sitk.Image], timings: dict[str, float], body: sitk.Image | None = None
                   ) -> NetworkRun:
@@ -131,12 +141,16 @@ class NetworkRuns:
         t = time.perf_counter()
         prepared = [self._start_tensors(fixed_img, moving_img, start, body) for start in starts]
         weight_ts = [weight_on_grid(weights, grid) for grid, _, _ in prepared]
+        fixed_in = [f for _, f, _ in prepared]
+        if self.context_grid_spec is not None:  # the CT context rides along as a second channel of the fixed input
+            fixed_in = [torch.cat([f, self._context(fixed_img, grid, body)], 0) for (grid, _, _), f in
+                        zip(prepared, fixed_in)]
         timings["preprocess"] = timings.get("preprocess", 0.0) + time.perf_counter() - t
         t = time.perf_counter()
         # the network works about its grid's centre: a grid of the same size and spacing stands for all of them
         canonical = self.grid_spec.canonical()
         residuals = self.estimate_batch(torch.stack([m for _, _, m in prepared]),
-                                        torch.stack([f for _, f, _ in prepared]), canonical, steps,
+                                        torch.stack(fixed_in), canonical, steps,
                                         None if weight_ts[0] is None else torch.stack(weight_ts))
         timings["network"] = timings.get("network", 0.0) + time.perf_counter() - t
         runs = []

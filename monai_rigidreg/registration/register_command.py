@@ -62,13 +62,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="soft: all tissue (default); bone: the CT's bone and a few mm around it")
     p.add_argument("--no-native-level", action="store_true",
                    help="skip the last Gauss-Newton steps over the whole CBCT field of view at the inputs' resolution "
-                   "(on by default; see the README for what it changes)")
+                   "(on by default; docs/usage.md says what it changes)")
     p.add_argument("--keep-couch", action="store_true",
                    help="keep the couches in the match (by default the CT's tissue outside its body, the couch, "
                    "counts as air and carries no match weight, so the treatment couch in the CBCT meets none either: "
                    "couches do not move with the patient)")
     p.add_argument("--transform-format", choices=("tfm", "h5"), default="tfm",
                    help="ITK transform file: transform.tfm (text) or transform.h5 (HDF5)")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object on stdout and nothing else (the log goes to stderr): result.json's "
+                   "record and 'outputs', the files written by name; with --datalist the batch summary")
     p.add_argument("--fail-on-flag", action="store_true",
                    help="exit with status 3 when the result is flagged as a likely failure (default: 0; the outputs "
                    "are written either way and result.json says flagged and why: details.flag_reasons)")
@@ -104,10 +107,11 @@ def _run_pairs(args: argparse.Namespace) -> int:
     # monai_rigidreg.registration.registrar")
     from monai_rigidreg.registration.files import register_files
     from monai_rigidreg.registration.inputs import check_register_inputs
-    from monai_rigidreg.registration.pairs import RegistrationEvaluator, registration_pairs
     from monai_rigidreg.registration.registrar import RigidRegistrar
 
     if args.datalist is not None:
+        from monai_rigidreg.registration.pairs import RegistrationEvaluator, registration_pairs  # and tqdm: batch only
+
         return _run_batch(args, RigidRegistrar, RegistrationEvaluator, registration_pairs)
 
     # inputs, options and the output folder before the network is loaded (register_files checks them again, cheaply)
@@ -121,6 +125,10 @@ def _run_pairs(args: argparse.Namespace) -> int:
                            fine_stage=False if args.no_fine_stage else None, patient_position=args.patient_position,
                            **options)
     summary = json.loads(paths["result.json"].read_text())
+    code = 3 if args.fail_on_flag and summary["flagged"] else 0  # 3: cli.EXIT_FLAGGED
+    if getattr(args, "json", False):  # machine-readable: the whole record and where the files are, nothing else
+        print(json.dumps({**summary, "outputs": {name: str(p) for name, p in paths.items()}}, indent=2))
+        return code
     couch = summary.get("couch_shift", {})
     confidence = summary["confidence"]  # null in result.json where the check did not run
     print(json.dumps({"params": summary["params"], "confidence": None if confidence is None else round(confidence, 2),
@@ -130,9 +138,10 @@ def _run_pairs(args: argparse.Namespace) -> int:
                       "couch_shift_3dof": {k: round(v, 2) for k, v in couch.get("3dof", {}).items()},
                       "couch_patient_position": couch.get("patient_position"),
                       "couch_isocentre": couch.get("isocentre_source")}, indent=2))
+    print("outputs:")
     for name, p in paths.items():
         print(f"  {name:18s} {p}")
-    return 3 if args.fail_on_flag and summary["flagged"] else 0  # 3: cli.EXIT_FLAGGED
+    return code
 
 
 def _load_registrar(args: argparse.Namespace, registrar_cls: Any) -> Any:

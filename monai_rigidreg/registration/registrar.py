@@ -207,6 +207,11 @@ class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage):
         self.native_highpass_sigma_mm = None if native_highpass_sigma_mm is None else float(native_highpass_sigma_mm)
         # a network that takes the match-region weight (TwoStageRigidNet, CorrelationRigidNet); others ignore it
         self.accepts_weight = "fixed_weight" in inspect.signature(self.network.forward).parameters
+        # a regression with a CT context (ContextCorrelationNet) also gets the CT on its context grid
+        self.context_grid_spec = None
+        if getattr(regression, "takes_context", False):
+            self.context_grid_spec = NetworkGridSpec(regression.context_size,
+                                                     [s * regression.context_factor for s in self.grid_spec.spacing])
         # one registration at a time per registrar: fine_stage_switch changes the shared network's setting
         self._lock = threading.RLock()
         self._workers: list[Background] = []  # this call's worker threads: all joined before __call__ returns

@@ -42,10 +42,12 @@ class RegistrationResult:
             ``warnings`` (a list of sentences, e.g. an input whose intensities are not HU) where there are any.
         provenance: the audit trail (:func:`~monai_rigidreg.export.provenance.registration_provenance`: inputs and their
             DICOM UIDs, bundle and weights' SHA-256, software versions, device, time, command line), filled in by
-            :func:`~monai_rigidreg.registration.files.register_files`; empty for in-memory images.
+            :func:`~monai_rigidreg.registration.files.register_files` and, for images given in memory too, by
+            :func:`~monai_rigidreg.registration.register` and :func:`~monai_rigidreg.export.outputs.write_outputs`
+            (:func:`~monai_rigidreg.export.record.complete_record`); empty from a bare :class:`RigidRegistrar` call.
         couch_shift: the correction in IEC 61217 couch terms at the isocentre
-            (:func:`~monai_rigidreg.export.couch_shifts.couch_shifts`), filled in by
-            :func:`~monai_rigidreg.registration.files.register_files`.
+            (:func:`~monai_rigidreg.export.couch_shifts.couch_shifts`), filled in by the same functions
+            (:func:`~monai_rigidreg.registration.register`: at the CBCT's centre, head-first supine assumed).
     """
 
     params: np.ndarray
@@ -90,5 +92,5 @@ class RegistrationResult:
             "flagged": bool(self.flagged),
             "details": json_safe(self.details),
             "provenance": json_safe(self.provenance),
-            **({"couch_shift": json_safe(self.couch_shift)} if self.couch_shift else {}),
+            "couch_shift": json_safe(self.couch_shift),
         }

@@ -5,76 +5,29 @@ anatomy for domain randomization: random label maps and contrasts, the ``"synth"
 (geometries), :mod:`.projector` (forward/back projection), :mod:`.reconstruction` (FDK, FBP), :mod:`.physics`
 (noise, scatter, beam hardening, truncation), :mod:`.protocols` (motions), :mod:`.config` (configuration and
 presets), :mod:`.volumes` (one Sim-CT, one CBCT, one case), :mod:`.dataset` (datasets), :mod:`.pair` (one pair),
-:mod:`.cli` (``monai-rigidreg simulate``) and :mod:`.toy` (tiny analytic pairs for tests and benchmarks, not a
-simulator).
+:mod:`.simulate_command` (``monai-rigidreg simulate``) and :mod:`.toy` (tiny analytic pairs for tests and
+benchmarks, not a simulator).
+
+The names below are exported here on first use (PEP 562), so that ``monai-rigidreg --help`` builds the ``simulate``
+command's parser without importing torch.
 """
 
-from __future__ import annotations
+from monai_rigidreg.core.lazy_exports import lazy_exports
 
-from monai_rigidreg.simulation.config import PRESETS, SimulationConfig, make_config
-from monai_rigidreg.simulation.dataset import simulate_dataset
-from monai_rigidreg.simulation.pair import simulate_pair
-from monai_rigidreg.simulation.phantoms import (
-    MU_WATER,
-    PHANTOMS,
-    Shape,
-    ct_to_mu,
-    hu_to_mu,
-    load_ct,
-    make_phantom,
-    mu_to_hu,
-    random_phantom_shapes,
-    shepp_logan_shapes,
-    voxelize,
-)
-from monai_rigidreg.simulation.physics import CBCTPhysics, apply_cbct_physics, fov_mask
-from monai_rigidreg.simulation.projector import cone_backproject, cone_forward, fan_backproject, fan_forward
-from monai_rigidreg.simulation.protocols import PROTOCOLS, MotionCase, paper_cases, protocol_cases, random_cases
-from monai_rigidreg.simulation.reconstruction import FILTERS, fbp_fan, fdk, ramp_filter
-from monai_rigidreg.simulation.scanner import ConeBeamGeometry, FanBeamGeometry
-from monai_rigidreg.simulation.synth import synth_hu_volume, synth_label_map, synth_phantom
-from monai_rigidreg.simulation.volumes import save_volume_hu, simulate_case, simulate_cbct, simulate_simct
-
-__all__ = [
-    "simulate_pair",
-    "PRESETS",
-    "SimulationConfig",
-    "make_config",
-    "save_volume_hu",
-    "simulate_case",
-    "simulate_cbct",
-    "simulate_dataset",
-    "simulate_simct",
-    "MU_WATER",
-    "PHANTOMS",
-    "Shape",
-    "ct_to_mu",
-    "hu_to_mu",
-    "load_ct",
-    "make_phantom",
-    "mu_to_hu",
-    "random_phantom_shapes",
-    "shepp_logan_shapes",
-    "voxelize",
-    "synth_hu_volume",
-    "synth_label_map",
-    "synth_phantom",
-    "CBCTPhysics",
-    "apply_cbct_physics",
-    "fov_mask",
-    "cone_backproject",
-    "cone_forward",
-    "fan_backproject",
-    "fan_forward",
-    "PROTOCOLS",
-    "MotionCase",
-    "paper_cases",
-    "protocol_cases",
-    "random_cases",
-    "FILTERS",
-    "fbp_fan",
-    "fdk",
-    "ramp_filter",
-    "ConeBeamGeometry",
-    "FanBeamGeometry",
-]
+_MODULES = {
+    "config": ("PRESETS", "SimulationConfig", "make_config"),
+    "dataset": ("simulate_dataset",),
+    "pair": ("simulate_pair",),
+    "phantoms": ("MU_WATER", "PHANTOMS", "Shape", "ct_to_mu", "hu_to_mu", "load_ct", "make_phantom", "mu_to_hu",
+                 "random_phantom_shapes", "shepp_logan_shapes", "voxelize"),
+    "physics": ("CBCTPhysics", "apply_cbct_physics", "fov_mask"),
+    "projector": ("cone_backproject", "cone_forward", "fan_backproject", "fan_forward"),
+    "protocols": ("PROTOCOLS", "MotionCase", "paper_cases", "protocol_cases", "random_cases"),
+    "reconstruction": ("FILTERS", "fbp_fan", "fdk", "ramp_filter"),
+    "scanner": ("ConeBeamGeometry", "FanBeamGeometry"),
+    "synth": ("synth_hu_volume", "synth_label_map", "synth_phantom"),
+    "volumes": ("save_volume_hu", "simulate_case", "simulate_cbct", "simulate_simct"),
+}
+_NAMES = {name: f"monai_rigidreg.simulation.{module}" for module, names in _MODULES.items() for name in names}
+__all__ = list(_NAMES)
+__getattr__, __dir__ = lazy_exports(__name__, _NAMES)

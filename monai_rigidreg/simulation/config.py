@@ -60,6 +60,12 @@ class SimulationConfig:
         physics: CBCT degradations (:class:`CBCTPhysics` fields).
         mask_outside_fov: set CBCT voxels outside the field of view to air (-1000 HU).
         max_translation, max_rotation: ranges of the ``random`` protocol (mm, degrees).
+        motion: one motion ``(tx, ty, tz, rx, ry, rz)`` (mm, degrees, about the Sim-CT centre) for every case,
+            instead of the protocol's (``num_cases`` defaults to 1; ``simulate --motion``).
+        ct_frame: with a CT as the phantom, the volumes keep the CT's physical frame: the Sim-CT and the CBCT are
+            centred on the CT's centre (:func:`~monai_rigidreg.simulation.phantoms.ct_center`), so that a CBCT
+            registers against the input CT itself; ``False``: centred on the origin (0, 0, 0), as before 0.5. The
+            built-in phantoms are always centred on the origin.
         device: ``"cpu"``, ``"cuda"`` or ``"auto"`` (does not change the configuration identity).
         workers: worker processes for the cases (0: in this process).
         volume_dtype: how the volumes are stored: ``"int16"`` whole HU (default, as scanners store CT) or
@@ -95,6 +101,8 @@ class SimulationConfig:
     mask_outside_fov: bool = True
     max_translation: float = 15.0
     max_rotation: float = 30.0
+    motion: tuple[float, ...] | None = None
+    ct_frame: bool = True
     device: str = "auto"
     workers: int = 0
     volume_dtype: str = "int16"
@@ -140,6 +148,15 @@ class SimulationConfig:
         if not (math.isfinite(self.sod) and math.isfinite(self.sdd) and 0 < self.sod < self.sdd):
             raise InputError(f"the source-isocentre and source-detector distances need 0 < sod < sdd, got sod "
                              f"{self.sod} and sdd {self.sdd} mm")
+        if self.motion is not None:
+            try:
+                motion = tuple(float(v) for v in self.motion)
+            except (TypeError, ValueError) as exc:
+                raise _value_error("motion", self.motion, "six numbers (tx, ty, tz mm, rx, ry, rz degrees)") from exc
+            if len(motion) != 6 or not all(math.isfinite(v) for v in motion):
+                raise _value_error("motion", self.motion, "six finite numbers (tx, ty, tz mm, rx, ry, rz degrees)")
+            self.motion = motion
+        self.ct_frame = bool(self.ct_frame)
         if self.phantom not in PHANTOMS:
             p = Path(self.phantom).expanduser()
             if not p.exists():
@@ -176,10 +193,19 @@ class SimulationConfig:
         return Grid.centered([max(2, math.ceil(e / sp)) for e in ext], (sp, sp, sp))
 
     def identity(self) -> dict[str, Any]:
-        """The fields that define the dataset (everything but the runtime ones), JSON-able."""
+        """The fields that define the dataset (everything but the runtime ones), JSON-able.
+
+        The fields of 0.5 are left out where they change nothing (``motion`` when not given, ``ct_frame`` for a
+        built-in phantom), so a dataset of an earlier release resumes; a CT's dataset of an earlier release was
+        centred on the origin and differs in ``ct_frame``.
+        """
         d = asdict(self)
         for k in _RUNTIME_KEYS:
             d.pop(k)
+        if self.motion is None:
+            d.pop("motion")
+        if self.phantom in PHANTOMS:
+            d.pop("ct_frame")
         return json.loads(json.dumps(d))
 
 

@@ -19,7 +19,10 @@ Output layout under ``output_dir``::
     cases/caseNNNN_cbct.nii.gz       CBCT per case (int16, HU)
     cases/caseNNNN_cbct_fov.nii.gz   CBCT field of view (uint8 mask on the CBCT grid)
 
-All volumes are centred on the isocentre (0, 0, 0) with identity direction (LPS).
+The volumes have identity direction (LPS). With a built-in phantom they are centred on the isocentre (0, 0, 0); with
+a CT they keep the CT's frame (the Sim-CT centred on the CT's centre, the isocentre there; ``ct_frame=False``: on the
+origin, as before 0.5), so that a CBCT registers against the input CT itself. ``dataset.json`` says which
+(``"frame"``, ``"frame_offset_mm"``); every case's ``params`` are about its ``center``, the Sim-CT centre, either way.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import importlib.metadata
 import json
+import logging
 import math
 import os
 import platform
@@ -47,11 +51,13 @@ from monai_rigidreg.core.errors import InputError, OutputExistsError
 from monai_rigidreg.core.geometry import params_to_matrix
 from monai_rigidreg.io.volumes import check_output_dir, make_dirs, remove_made_dirs
 from monai_rigidreg.simulation.config import SimulationConfig, make_config
-from monai_rigidreg.simulation.phantoms import PHANTOMS, load_ct
+from monai_rigidreg.simulation.phantoms import PHANTOMS, ct_center, load_ct
 from monai_rigidreg.simulation.protocols import MotionCase, protocol_cases
-from monai_rigidreg.simulation.volumes import simulate_case, stream_seed, write_simct
+from monai_rigidreg.simulation.volumes import frame_offset, simulate_case, stream_seed, write_simct
 
 __all__ = ["simulate_dataset"]
+
+logger = logging.getLogger(__name__)
 
 
 PHANTOM_FAMILIES: tuple[str, ...] = ("random", "synth")
@@ -148,7 +154,7 @@ def simulate_dataset(
             randomization, :mod:`monai_rigidreg.simulation.synth`) or a path to a CT (NIfTI file or
             DICOM directory, HU).
         protocol: ``"paper"`` or ``"random"``.
-        num_cases: number of cases (``None``: all 63 ``paper`` cases, 64 ``random`` ones).
+        num_cases: number of cases (``None``: all 63 ``paper`` cases, 64 ``random`` ones, 1 with ``motion=``).
         preset: ``"paper"`` (Sim-CT 256^3 at 1 mm, CBCT 128^3 at 1 mm) or ``"fast"`` (Sim-CT 64^3 at 4 mm,
             CBCT 48^3 at 5 mm).
         seed: master seed.
@@ -158,7 +164,8 @@ def simulate_dataset(
         workers: worker processes for the CBCTs (0: this process).
         progress: show a tqdm progress bar.
         **overrides: any :class:`SimulationConfig` or :class:`CBCTPhysics` field (e.g. ``cbct_spacing=2.0``,
-            ``cbct_views=180``, ``photons=1e4``, ``scatter_to_primary=0``).
+            ``cbct_views=180``, ``photons=1e4``, ``scatter_to_primary=0``; ``motion=(tx, ty, tz, rx, ry, rz)``: that
+            motion for every case instead of the protocol's; ``ct_frame=False``: a CT's pairs centred on the origin).
 
     Returns:
         Path of ``dataset.json`` (a MONAI datalist: ``load_decathlon_datalist(path, data_list_key="training")``).
@@ -206,6 +213,18 @@ def simulate_dataset(
         raise
 
 
+def _frame(cfg: SimulationConfig, center: np.ndarray) -> str:
+    """One line on where the volumes lie (``dataset.json``'s ``"frame"``, and the log)."""
+    at = "(" + ", ".join(f"{v:.1f}" for v in center) + ") mm LPS"
+    if cfg.phantom in PHANTOMS:
+        return f"built-in phantom: the Sim-CT is centred on the origin {at}, the motions are about it"
+    if cfg.ct_frame:
+        return (f"the input CT's frame: the Sim-CT is centred on the CT's centre {at}, the motions are about it; "
+                "the CBCTs register against the input CT itself")
+    return (f"centred on the origin (ct_frame=False): the Sim-CT centre {at} stands for the CT's centre "
+            f"{tuple(round(float(v), 1) for v in ct_center(cfg.phantom))}; register the CBCTs against the Sim-CT")
+
+
 def _finished_volumes(out: Path) -> list[Path]:
     """The Sim-CTs and CBCTs of ``out`` that are complete (written under their final names)."""
     return [p for p in out.glob("*/*.nii.gz") if not p.name.startswith(".")]
@@ -239,10 +258,13 @@ def _simulate_into(out: Path, cfg: SimulationConfig, dev: torch.device, overwrit
     (out / "simulation.json").write_text(json.dumps(meta, indent=2))
 
     cases: list[MotionCase] = protocol_cases(
-        cfg.protocol, cfg.num_cases, cfg.seed, cfg.max_translation, cfg.max_rotation
+        cfg.protocol, cfg.num_cases, cfg.seed, cfg.max_translation, cfg.max_rotation, motion=cfg.motion
     )
     n_obj = _num_objects(cfg, len(cases))
-    center = cfg.simct_grid.center()
+    offset = frame_offset(cfg)
+    center = cfg.simct_grid.center() + offset
+    frame = _frame(cfg, center)
+    logger.info("simulating %d case(s): %s", len(cases), frame)
     items, todo = [], []
     for i, case in enumerate(cases):
         k = i % n_obj
@@ -285,8 +307,8 @@ def _simulate_into(out: Path, cfg: SimulationConfig, dev: torch.device, overwrit
     path = out / "dataset.json"
     tmp = out / ".dataset.json.tmp"
     try:
-        tmp.write_text(json.dumps({"name": "monai-rigidreg simulated CBCT/Sim-CT pairs", "training": items},
-                                  indent=1))
+        tmp.write_text(json.dumps({"name": "monai-rigidreg simulated CBCT/Sim-CT pairs", "frame": frame,
+                                   "frame_offset_mm": [float(v) for v in offset], "training": items}, indent=1))
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)

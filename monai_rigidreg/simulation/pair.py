@@ -8,7 +8,7 @@ from typing import Any
 
 from monai_rigidreg.core.geometry import params_to_matrix
 from monai_rigidreg.simulation.config import make_config
-from monai_rigidreg.simulation.volumes import simulate_case
+from monai_rigidreg.simulation.volumes import frame_offset, simulate_case
 
 __all__ = ["simulate_pair"]
 
@@ -31,7 +31,8 @@ def simulate_pair(
     Args:
         output_dir: created if needed; existing files are replaced.
         phantom: ``"shepp-logan"``, ``"shepp-logan-asym"``, ``"random"`` or a CT path.
-        params: motion ``(tx, ty, tz, rx, ry, rz)`` (mm, degrees) about the isocentre = the Sim-CT centre.
+        params: motion ``(tx, ty, tz, rx, ry, rz)`` (mm, degrees) about the isocentre = the Sim-CT centre (with a CT
+            as the phantom, the CT's centre: the pair keeps the CT's frame unless ``ct_frame=False``).
         preset: ``"fast"`` or ``"paper"`` (see :func:`~monai_rigidreg.simulation.make_config`).
         seed: phantom (random family) and noise seed.
         device: ``"auto"``, ``"cpu"``, ``"cuda"``.
@@ -39,7 +40,9 @@ def simulate_pair(
 
     Returns:
         ``{"fixed", "moving", "moving_fov"}`` paths, ``"params"``, ``"matrix"`` and ``"center"`` of the ground
-        truth (the registration transform fixed -> moving is the motion itself).
+        truth (the registration transform fixed -> moving is the motion itself), and ``"frame_offset_mm"``: where
+        the volumes lie relative to the simulation's frame centred on the origin (the CT's centre for a CT, else 0;
+        :func:`~monai_rigidreg.simulation.volumes.frame_offset`).
     """
     cfg = make_config(preset, phantom=str(phantom), seed=seed, device=device, **overrides)
     out = Path(output_dir)
@@ -53,7 +56,8 @@ def simulate_pair(
         "moving_fov": "cbct_fov.nii.gz",
     }
     paths = simulate_case(cfg, case, out)
-    center = cfg.simct_grid.center()
+    offset = frame_offset(cfg)
+    center = cfg.simct_grid.center() + offset
     return {
         "fixed": str(paths["fixed"]),
         "moving": str(paths["moving"]),
@@ -61,4 +65,5 @@ def simulate_pair(
         "params": case["params"],
         "matrix": params_to_matrix(params, center).tolist(),
         "center": [float(v) for v in center],
+        "frame_offset_mm": [float(v) for v in offset],
     }

@@ -39,6 +39,7 @@ __all__ = [
     "random_phantom_shapes",
     "voxelize",
     "load_ct",
+    "ct_center",
     "ct_to_mu",
     "make_phantom",
 ]
@@ -290,6 +291,36 @@ def load_ct(path: str | Path) -> sitk.Image:
     return img
 
 
+def image_center(image: sitk.Image) -> np.ndarray:
+    """Physical centre (LPS mm) of an image: the point half-way between its first and last voxel centres."""
+    size = np.asarray(image.GetSize(), dtype=np.float64)
+    return np.asarray(image.TransformContinuousIndexToPhysicalPoint(((size - 1) / 2).tolist()))
+
+
+_CENTERS: dict[tuple, np.ndarray] = {}
+
+
+def ct_center(path: str | Path) -> np.ndarray:
+    """Physical centre (LPS mm) of the CT at ``path`` as :func:`load_ct` reads it: the point a simulation from that CT
+    is centred on (:func:`ct_to_mu`). A file's header alone is read; a DICOM folder is read whole (once per folder
+    and modification time in a process)."""
+    p = Path(path)
+    key = (str(p.resolve()), p.stat().st_mtime_ns)
+    if key not in _CENTERS:
+        if p.is_dir():
+            _CENTERS[key] = image_center(load_ct(p))
+        else:
+            reader = sitk.ImageFileReader()
+            reader.SetFileName(str(p))
+            reader.ReadImageInformation()
+            if reader.GetDimension() != 3:
+                raise InputError(f"expected a 3D scalar CT, got a {reader.GetDimension()}D image", p)
+            half = np.asarray(reader.GetSpacing()) * (np.asarray(reader.GetSize(), dtype=np.float64) - 1) / 2
+            direction = np.asarray(reader.GetDirection(), dtype=np.float64).reshape(3, 3)
+            _CENTERS[key] = np.asarray(reader.GetOrigin(), dtype=np.float64) + direction @ half
+    return _CENTERS[key].copy()
+
+
 def ct_to_mu(image: sitk.Image, grid: Grid, device: str | torch.device | None = "cpu") -> torch.Tensor:
     """Attenuation volume of a CT (HU) on ``grid``, the CT's physical centre placed at the grid centre.
 
@@ -303,9 +334,7 @@ def ct_to_mu(image: sitk.Image, grid: Grid, device: str | torch.device | None = 
     sigma = [max(0.0, 0.5 * (g - s)) for g, s in zip(grid.spacing, src.GetSpacing())]
     if max(sigma) > 0:
         src = sitk.SmoothingRecursiveGaussian(src, [max(s, 1e-3) for s in sigma])
-    size = np.asarray(image.GetSize(), dtype=np.float64)
-    ct_center = np.asarray(image.TransformContinuousIndexToPhysicalPoint(((size - 1) / 2).tolist()))
-    shift = sitk.TranslationTransform(3, (ct_center - grid.center()).tolist())
+    shift = sitk.TranslationTransform(3, (image_center(image) - grid.center()).tolist())
     res = sitk.Resample(src, grid.to_sitk(), shift, sitk.sitkLinear, -1000.0, sitk.sitkFloat32)
     arr = sitk.GetArrayFromImage(res).transpose(2, 1, 0).copy()  # [z, y, x] -> [x, y, z]
     return hu_to_mu(torch.from_numpy(arr)).to(resolve_device(device))

@@ -8,7 +8,10 @@ and a ``group`` label the evaluation report groups by:
 * ``"rotation_x"``, ``"rotation_y"``, ``"rotation_z"``: one axis, +-10, +-20, +-30 degrees;
 * ``"rotation"``: several rotation axes at once (up to 30 degrees);
 * ``"multi"``: translations and rotations together (6 DoF);
-* ``"random"``: the ``random`` protocol (continuous uniform ranges).
+* ``"random"``: the ``random`` protocol (continuous uniform ranges);
+* ``"multi30"``: the ``multi30`` protocol, 6-DoF motions with ``|rx| = |ry| = |rz| = 30`` degrees (every sign
+  pattern) and translations of 5-15 mm on all three axes;
+* ``"given"``: a motion given by the caller (``simulate --motion``).
 
 ``condition`` names the reference study's table rows: ``"Translation (1.5 cm)"`` (15 mm translations, no
 rotation) and ``"Rotation (theta_x = 30 deg)"`` (``rx = +-30``, nothing else).
@@ -21,9 +24,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["MotionCase", "PROTOCOLS", "paper_cases", "random_cases", "protocol_cases"]
+__all__ = ["MotionCase", "PROTOCOLS", "paper_cases", "multi30_cases", "random_cases", "protocol_cases"]
 
-PROTOCOLS: tuple[str, ...] = ("paper", "random")
+PROTOCOLS: tuple[str, ...] = ("paper", "random", "multi30")
 TRANSLATION_15MM = "Translation (1.5 cm)"
 ROTATION_X_30 = "Rotation (theta_x = 30 deg)"
 
@@ -96,6 +99,16 @@ def paper_cases() -> list[MotionCase]:
     return list(unique.values())
 
 
+def multi30_cases() -> list[MotionCase]:
+    """Large multi-axis motions beyond the paper protocol's: every sign pattern of ``|rx| = |ry| = |rz| = 30``
+    degrees, each with another permutation of the translations 5 / 15 / -10 mm (8 cases; the first is
+    ``(5, 15, -10, 30, 30, -30)``)."""
+    translations = ((5, 15, -10), (-10, 5, 15), (15, -10, 5), (-5, -15, 10), (10, -5, -15), (-15, 10, -5),
+                    (5, -10, 15), (-5, 15, -10))
+    signs = ((1, 1, -1), (-1, 1, 1), (1, -1, 1), (-1, -1, -1), (1, 1, 1), (-1, -1, 1), (1, -1, -1), (-1, 1, -1))
+    return [_case([*t, *(30.0 * s for s in r)], "multi30") for t, r in zip(translations, signs)]
+
+
 def random_cases(
     num_cases: int, seed: int = 0, max_translation: float = 15.0, max_rotation: float = 30.0
 ) -> list[MotionCase]:
@@ -115,8 +128,9 @@ def protocol_cases(
     seed: int = 0,
     max_translation: float = 15.0,
     max_rotation: float = 30.0,
+    motion: Any = None,
 ) -> list[MotionCase]:
-    """Cases of a protocol.
+    """Cases of a protocol, or of one given motion.
 
     Args:
         protocol: ``"paper"`` or ``"random"``.
@@ -126,11 +140,24 @@ def protocol_cases(
         seed: seed of the ``random`` protocol.
         max_translation: ``random`` range, mm.
         max_rotation: ``random`` range, degrees.
+        motion: ``(tx, ty, tz, rx, ry, rz)``: every case has this motion (group ``"given"``; ``num_cases``
+            default 1, each case its own CBCT realisation) and the protocol is not used.
     """
+    if motion is not None:
+        if num_cases is not None and num_cases < 1:
+            raise ValueError(f"num_cases must be >= 1, got {num_cases}")
+        return [_case(list(motion), "given")] * (1 if num_cases is None else num_cases)
     if protocol == "random":
         return random_cases(64 if num_cases is None else num_cases, seed, max_translation, max_rotation)
-    if protocol != "paper":
+    if protocol not in ("paper", "multi30"):
         raise ValueError(f"unknown protocol {protocol!r}; choose one of {PROTOCOLS}")
+    if protocol == "multi30":
+        cases = multi30_cases()
+        if num_cases is None:
+            return cases
+        if num_cases < 1:
+            raise ValueError(f"num_cases must be >= 1, got {num_cases}")
+        return [cases[i % len(cases)] for i in range(num_cases)]
     cases = paper_cases()
     if num_cases is None:
         return cases

@@ -10,11 +10,14 @@ degraded (:class:`~monai_rigidreg.simulation.physics.CBCTPhysics`) and reconstru
 :func:`simulate_case` simulates and writes one case of a :class:`~monai_rigidreg.simulation.config.SimulationConfig`
 (the building block of :func:`~monai_rigidreg.simulation.simulate_dataset` and
 :func:`~monai_rigidreg.simulation.simulate_pair`); volumes are written in HU, atomically (:func:`save_volume_hu`).
-All volumes are centred on the isocentre (0, 0, 0) with identity direction (LPS).
+The simulation runs about the isocentre (0, 0, 0) with identity direction (LPS); the volumes are written there, or,
+with a CT as the phantom (and ``ct_frame``, the default), moved by :func:`frame_offset` into the CT's own frame, so
+that a CBCT registers against the input CT itself. The motion is the same about the moved Sim-CT centre.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -30,14 +33,14 @@ from monai_rigidreg.core.device import resolve_device
 from monai_rigidreg.core.geometry import Grid, params_to_matrix
 from monai_rigidreg.core.warp import warp_volume
 from monai_rigidreg.simulation.config import SimulationConfig
-from monai_rigidreg.simulation.phantoms import PHANTOMS, make_phantom, mu_to_hu
+from monai_rigidreg.simulation.phantoms import PHANTOMS, ct_center, make_phantom, mu_to_hu
 from monai_rigidreg.simulation.physics import CBCTPhysics, apply_cbct_physics, fov_mask
 from monai_rigidreg.simulation.projector import cone_forward, fan_forward, grid_axes
 from monai_rigidreg.simulation.reconstruction import fbp_fan, fdk
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry, FanBeamGeometry
 
 __all__ = ["simulate_simct", "simulate_cbct", "save_volume_hu", "save_fov_mask", "write_simct", "simulate_case",
-           "stream_seed"]
+           "stream_seed", "frame_offset"]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -205,6 +208,19 @@ def stream_seed(*keys: int) -> int:
     return int(np.random.SeedSequence([int(k) for k in keys]).generate_state(1)[0])
 
 
+def frame_offset(cfg: SimulationConfig) -> np.ndarray:
+    """Where the written volumes of ``cfg`` lie relative to the simulation's frame (LPS mm): with a CT as the phantom
+    and ``cfg.ct_frame``, the CT's centre less the Sim-CT grid's (the Sim-CT then lies where the CT does); else 0."""
+    if cfg.phantom in PHANTOMS or not cfg.ct_frame:
+        return np.zeros(3)
+    return ct_center(cfg.phantom) - cfg.simct_grid.center()
+
+
+def _placed(grid: Grid, offset: np.ndarray) -> Grid:
+    """``grid`` moved by ``offset`` (LPS mm): the grid a volume simulated on ``grid`` is written on."""
+    return dataclasses.replace(grid, origin=tuple(float(v) for v in np.add(grid.origin, offset)))
+
+
 def _object_volume(cfg: SimulationConfig, k: int, grid: Grid, device: torch.device) -> torch.Tensor:
     mu, _ = make_phantom(cfg.phantom, grid, stream_seed(cfg.seed, 0, k), cfg.supersample, cfg.radius_mm, device)
     return mu
@@ -233,7 +249,7 @@ def write_simct(cfg: SimulationConfig, object_index: int, path: str | Path) -> P
         stream_seed(cfg.seed, 2, object_index),
         dev,
     )
-    return save_volume_hu(rec, grid, path, cfg.volume_dtype)
+    return save_volume_hu(rec, _placed(grid, frame_offset(cfg)), path, cfg.volume_dtype)
 
 
 def simulate_case(
@@ -296,7 +312,8 @@ def simulate_case(
         padding_mode="zeros" if cfg.phantom in PHANTOMS else "border",
         device=dev,
     )
-    written["moving_fov"] = save_fov_mask(fov, cfg.cbct_grid, out / case["moving_fov"])
+    cbct_grid = _placed(cfg.cbct_grid, frame_offset(cfg))  # the CT's frame, where the phantom is a CT (ct_frame)
+    written["moving_fov"] = save_fov_mask(fov, cbct_grid, out / case["moving_fov"])
     # written last: its presence marks a finished case
-    written["moving"] = save_volume_hu(rec, cfg.cbct_grid, out / case["moving"], cfg.volume_dtype)
+    written["moving"] = save_volume_hu(rec, cbct_grid, out / case["moving"], cfg.volume_dtype)
     return written

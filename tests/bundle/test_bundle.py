@@ -136,6 +136,42 @@ def test_torchrun_two_processes_gloo(bundle_copy, tiny_dataset, tmp_path):
     assert out.count("Epoch[1] Complete") >= 2  # both ranks trained
 
 
+def _cases_csv(path: Path) -> list[dict[str, str]]:
+    import csv
+
+    with open(path, newline="", encoding="utf-8") as fh:
+        return list(csv.DictReader(fh))
+
+
+@pytest.mark.slow
+def test_torchrun_evaluation_registers_each_case_once_as_one_process_does(shipped_bundle, tiny_dataset, tmp_path):
+    """``multi_gpu_evaluate.json`` under ``torchrun --nproc_per_node=2`` (gloo on the CPU): the three cases split
+    between the ranks (2 + 1: no padding), every case once in the merged report, with the numbers of the same
+    evaluation in one process; the report (markdown, html, overlays) is written once, by rank 0."""
+    cfg = shipped_bundle / "configs"
+    one = json.dumps([str(cfg / "inference.json"), str(cfg / "evaluate.json")])
+    two = json.dumps([str(cfg / "inference.json"), str(cfg / "evaluate.json"), str(cfg / "multi_gpu_evaluate.json")])
+    common = ["--bundle_root", str(shipped_bundle), "--datalist", str(tiny_dataset), "--device", "$torch.device('cpu')"]
+    run_bundle(["run", "--config_file", one, "--output_dir", str(tmp_path / "one"), *common], shipped_bundle)
+    out = run_bundle(["--standalone", "--nproc_per_node=2", "-m", "monai.bundle", "run", "--config_file", two,
+                      "--output_dir", str(tmp_path / "two"), *common], shipped_bundle, module="torch.distributed.run")
+    single, merged = _cases_csv(tmp_path / "one" / "cases.csv"), _cases_csv(tmp_path / "two" / "cases.csv")
+    ids = [json.loads(Path(tiny_dataset).read_text())["training"][i]["case_id"] for i in range(3)]
+    assert [(r["case_id"], r["method"]) for r in merged] == [(i, "network") for i in ids]  # each once, in order
+    for a, b in zip(single, merged):
+        for k in a:
+            if k.startswith(("pred_", "true_", "abs_err_")) or k in ("tre_mm", "success", "confidence", "flagged"):
+                assert a[k] == b[k], (a["case_id"], k)
+    report = (tmp_path / "two" / "report.md").read_text(encoding="utf-8")
+    assert out.count(report.splitlines()[0]) == 1  # printed once, by rank 0
+    summary = json.loads((tmp_path / "two" / "summary.json").read_text())
+    assert summary["summary"]["network"]["n"] == 3
+    html = (tmp_path / "two" / "report.html").read_text(encoding="utf-8")
+    pngs = sorted(p.name for p in (tmp_path / "two" / "report_files").iterdir())
+    assert len(pngs) == 3 and all(name in html for name in pngs)  # overlays of both ranks, one per case
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging folder left
+
+
 def _inference(bundle: Path, pair: dict, out_dir: Path, *extra: str) -> dict:
     run_bundle(["run", "--config_file", str(bundle / "configs" / "inference.json"), "--bundle_root", str(bundle),
                 "--fixed", str(pair["fixed"]), "--moving", str(pair["moving"]), "--output_dir", str(out_dir), *extra],
@@ -219,7 +255,9 @@ def test_train_with_default_folders_leaves_the_installed_weights_alone_and_runs_
     (stub / "__init__.py").write_text("raise ImportError('simulated: tensorboard is not installed')\n")
     work = tmp_path / "work"
     work.mkdir()
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(stub.parent)}
+    # the stub first, then whatever the caller's PYTHONPATH holds (a checkout under test that is not the installed one)
+    env = {**os.environ, "OMP_NUM_THREADS": "1",
+           "PYTHONPATH": os.pathsep.join([str(stub.parent), *filter(None, [os.environ.get("PYTHONPATH")])])}
     sets = [*TINY_NET, "cascade_steps=1", "log_every=1"]
     cmd = [sys.executable, "-m", "monai_rigidreg.cli", "train", "--datalist", str(tiny_dataset), "--val-datalist",
            str(tiny_dataset), "--epochs", "1", "--epoch-length", "1", "--num-workers", "0", "--set", *sets]

@@ -21,3 +21,13 @@ def test_evaluate_refuses_an_empty_datalist_and_a_bad_max_cases(pair, tmp_path, 
     code, err = run_cli(capsys, ["evaluate", "--datalist", one, "--output-dir", tmp_path / "eval", "--max-cases", "0"])
     assert code == 2 and "max_cases must be a whole number >= 1, got 0" in last_line(err)
     assert listing(tmp_path) == ["empty.json", "one.json"]
+
+
+def test_the_command_s_copies_of_the_methods_and_the_overlay_count_agree():
+    """``evaluate_command`` keeps its own copies (its parser is built by ``monai-rigidreg --help``, without torch)."""
+    from monai_rigidreg.evaluation import evaluate_command
+    from monai_rigidreg.evaluation.evaluate import METHODS
+    from monai_rigidreg.evaluation.overlays import DEFAULT_MAX_OVERLAYS
+
+    assert evaluate_command.METHODS == METHODS
+    assert evaluate_command.DEFAULT_MAX_OVERLAYS == DEFAULT_MAX_OVERLAYS

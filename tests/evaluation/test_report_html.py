@@ -211,10 +211,12 @@ def test_html_report_images_exist_and_are_small(evaluated):
         assert f.stat().st_size <= OVERLAY_MAX_BYTES
         img = sitk.ReadImage(str(f))
         assert img.GetNumberOfComponentsPerPixel() == 3 and np.ptp(sitk.GetArrayFromImage(img)) > 50
-    # max_overlays=0: exactly the network results that failed or were flagged (cases 0 and 1); none for sitk
+    # max_overlays=0: exactly the results that failed or were flagged, of any method (the network's in cases 0 and
+    # 1, a SimpleITK failure too), and the network's results of a case where a baseline failed
     cases = res["cases"]
-    expect = {i for i, c in enumerate(cases) if c.method == "network" and needs_attention(c)}
-    assert len(expect) == 2
+    problem = {c.case_id for c in cases if needs_attention(c)}
+    expect = {i for i, c in enumerate(cases) if needs_attention(c) or (c.method == "network" and c.case_id in problem)}
+    assert len([i for i in expect if cases[i].method == "network" and needs_attention(cases[i])]) == 2
     assert sorted(p.name for p in (out / "report_files").iterdir()) == sorted(Path(s).name for s in page.imgs)
     assert {int(Path(s).name[:5]) for s in page.imgs} == expect
     for src in page.imgs:  # each shown overlay is linked from its row
@@ -349,6 +351,23 @@ def test_html_report_escapes_text_and_writer_without_evaluation(tmp_path):
     assert page.imgs == ["report_files/00001_ok_network.png"] and (tmp_path / page.imgs[0]).is_file()
     with pytest.raises(ValueError, match="max_others"):
         OverlayGallery(tmp_path, ["network"], max_others=-1)
+
+
+def test_a_baseline_s_failure_gets_an_overlay_and_the_network_s_result_beside_it(tmp_path):
+    """SimpleITK failed, the network did not: both results of that case get overlays (the baselines' failures had
+    none); a case where every result succeeded counts against the cap, and only the network's is drawn."""
+    fixed, moving = _small_pair()
+    center = Grid.from_sitk(fixed).center()
+    gallery = OverlayGallery(tmp_path / "report_files", ["network", "sitk"], max_others=1)
+    ok = {"confidence": 0.9, "flagged": False}
+    failed = [(0, CaseResult("a", "network", [5, 0, 0, 0, 0, 0], [5, 0, 0, 0, 0, 0], 0.1, 0.2, extra=ok)),
+              (1, CaseResult("a", "sitk", [5, 0, 0, 0, 0, 0], [25, 0, 0, 0, 0, 0], 20.0, 0.2))]
+    fine = [(2, CaseResult("b", "network", [5, 0, 0, 0, 0, 0], [5, 0, 0, 0, 0, 0], 0.1, 0.2, extra=ok)),
+            (3, CaseResult("b", "sitk", [5, 0, 0, 0, 0, 0], [5, 0, 0, 0, 0, 0], 0.3, 0.2))]
+    assert [p.name for p in gallery.add(fixed, moving, center, failed)] == ["00000_a_network.png", "00001_a_sitk.png"]
+    assert [p.name for p in gallery.add(fixed, moving, center, fine)] == ["00002_b_network.png"]
+    assert [p.name for p in gallery.add(fixed, moving, center, [(4, fine[0][1]), (5, fine[1][1])])] == []
+    assert sorted(gallery.images) == [0, 1, 2] and gallery.omitted == 1
 
 
 def _chromium() -> str | None:

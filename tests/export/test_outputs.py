@@ -173,3 +173,24 @@ def test_sigterm_while_writing_outputs_from_python_cleans_up(result, tmp_path, m
         assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def test_qc_window_percentiles_are_numpys_without_numpy_ma():
+    """The QC figure's window: ``np.percentile``'s numbers exactly (its linear interpolation, dtypes of CT volumes,
+    the ends), computed without importing ``numpy.ma`` (a cost of the ``register`` command's start)."""
+    import subprocess
+    import sys
+
+    import numpy as np
+
+    from monai_rigidreg.export.qc_figure import percentiles
+
+    rng = np.random.default_rng(0)
+    for trial in range(60):
+        a = rng.normal(0, 500, int(rng.integers(1, 3000))).astype((np.int16, np.float32, np.float64)[trial % 3])
+        for q in ([1, 99], [0, 100], [50], [1.5, 97.25]):
+            want, got = np.percentile(a, q), percentiles(a, q)
+            assert np.array_equal(want, got) and want.dtype == got.dtype, (trial, q)
+    code = ("import sys, numpy as np; from monai_rigidreg.export.qc_figure import percentiles; "
+            "percentiles(np.arange(100, dtype=np.int16).reshape(4, 5, 5), [1, 99]); print('numpy.ma' in sys.modules)")
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout == "False\n"

@@ -124,15 +124,61 @@ def test_qc_difference_colours_and_field_of_view_outline():
     and the outline of a field-of-view mask (its border pixels only)."""
     from monai_rigidreg.export.qc_figure import _outline, _to_rgb
 
-    rgb = _to_rgb(np.array([[-1.0, -0.5, 0.0, 0.5, 1.0]]), "diff")[0]
-    # (a 256-entry table: values between its entries are off by a step, at most 2 of 255)
-    np.testing.assert_allclose(rgb, [[0, 0, 77], [0, 0, 255], [255, 255, 255], [255, 0, 0], [128, 0, 0]], atol=2)
+    rgb = _to_rgb(np.array([[-1.0, -0.5, 0.0, 0.5, 1.0, np.nan]]), "diff")[0]
+    # (a 256-entry table: values between its entries are off by a step, at most 2 of 255); NaN, outside the CBCT's
+    # field of view: grey
+    np.testing.assert_allclose(rgb, [[0, 0, 77], [0, 0, 255], [255, 255, 255], [255, 0, 0], [128, 0, 0],
+                                     [150, 150, 150]], atol=2)
     gray = _to_rgb(np.array([[0.0, 0.5, 1.0]]), "gray")[0]
     np.testing.assert_array_equal(gray, [[0, 0, 0], [128, 128, 128], [255, 255, 255]])
     mask = np.zeros((7, 9), bool)
     mask[2:5, 3:8] = True
     border = _outline(mask)
     assert border.sum() == 2 * 5 + 2 * 3 - 4 and not border[3, 4:7].any() and border[2, 3] and border[4, 7]
+
+
+def test_qc_panels_zoom_to_the_cbct_grey_out_what_it_misses_and_say_the_difference_s_sign():
+    """A 128 mm CBCT of a 500 mm CT, 90 mm off the CT's centre and registered with a large motion: every panel is
+    zoomed to the CBCT's field of view (its box covers the field of view, and little more), the difference panels are
+    grey exactly where the CBCT sees nothing, the "before" panels pass through the CBCT's own centre (its coronal
+    was blank: it went through the registered centre, which the unregistered CBCT misses) and the difference is
+    CT - CBCT over the stated window."""
+    from monai_rigidreg.export.qc_figure import _NEUTRAL, _to_rgb, qc_panels
+
+    fixed = smooth_random_image((100, 100, 40), (5.0, 5.0, 5.0), (-250.0, -250.0, -100.0),
+                                (1, 0, 0, 0, 1, 0, 0, 0, 1), seed=4, sigma_mm=6.0) * 3000
+    center = Grid.from_sitk(fixed).center()
+    tfm = params_to_sitk([40.0, -30.0, 20.0, 8.0, -5.0, 25.0], center)
+    grid = Grid.centered((32, 32, 32), (4.0, 4.0, 4.0), center=center + np.array([90.0, -30.0, 20.0]))
+    moving = resample(fixed, grid, tfm.GetInverse(), default_value=-1000)  # the CBCT sees the CT moved by T
+    registered = resample(moving, fixed, tfm, default_value=-1000)
+    q = qc_panels(fixed, moving, registered, window=(-1000.0, 1000.0), transform=tfm)
+    assert q["diff_window_hu"] == 1000.0 and "difference = CT - registered CBCT" in q["titles"][4]
+    assert "CT - CBCT before" in q["titles"][3] and "window \u00b11000 HU" in q["subtitles"][4]
+    centre = grid.center()
+    assert q["centers"]["before"] == fixed.TransformPhysicalPointToIndex(tuple(centre))
+    for group, column in (("before", 3), ("after", 4)):
+        for r in range(3):
+            mask, (r0, r1, c0, c1) = q["fov"][group][r], q["boxes"][group][r]
+            rows, cols = np.nonzero(mask)
+            assert rows.size and r0 <= rows.min() and rows.max() < r1 and c0 <= cols.min() and cols.max() < c1
+            assert (r1 - r0) <= 1.3 * (np.ptp(rows) + 1) + 4 and (c1 - c0) <= 1.3 * (np.ptp(cols) + 1) + 4  # zoomed
+            assert r > 0 or (r1 - r0) * (c1 - c0) < 0.2 * mask.size  # the axial: a fifth of the 500 mm slice
+            tile, kind = q["panels"][r][column]
+            seen = mask[r0:r1, c0:c1]
+            assert kind == "diff" and tile.shape == seen.shape
+            np.testing.assert_array_equal(np.isnan(tile), ~seen)  # grey exactly where the CBCT sees nothing
+            rgb = _to_rgb(tile, "diff")
+            assert (rgb[~seen] == _NEUTRAL).all() and not (rgb[seen] == _NEUTRAL).all(-1).any()
+            before, _ = q["panels"][r][0]
+            assert np.ptp(before[seen] if group == "before" else before) > 0.05  # the CBCT, not a blank slice
+    # registered with the true motion: the difference after is small inside the field of view (resampling twice
+    # leaves some); the sign: a CBCT 100 HU darker than the CT reads +100 HU (red)
+    inside = q["panels"][1][4][0][~np.isnan(q["panels"][1][4][0])]
+    assert float(np.median(np.abs(inside))) < 0.05
+    darker = qc_panels(fixed, moving, registered - 100.0, window=(-1000.0, 1000.0), transform=tfm)
+    values = darker["panels"][0][4][0]
+    assert abs(float(np.nanmedian(values)) - 0.1) < 0.02
 
 
 def test_qc_orientation_letters_follow_the_direction_cosines():

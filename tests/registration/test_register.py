@@ -775,3 +775,42 @@ def test_result_json_is_strict_json_with_unmeasured_signals_as_null():
     assert back["details"]["signals"]["local_gain"] == pytest.approx(0.002)
     assert back["details"]["grid"] == [64, 64, 64]
     assert back["params"]["tx"] == 1.0
+
+
+COUCH_KEYS = {"6dof", "3dof", "isocentre_lps_mm", "patient_position", "patient_position_assumed",
+              "isocentre_source", "patient_position_source"}
+
+
+def _couch_keys(record: dict) -> set:
+    return {k for k in COUCH_KEYS if k in record}
+
+
+def test_every_entry_point_gives_couch_shifts_and_an_audit_trail(pair, small_registrar, tmp_path):
+    """``register()`` (paths or images), a bare registrar's result written by ``write_outputs`` (the demo's way) and
+    ``register_files`` all carry ``couch_shift`` and ``provenance``: they were absent or empty outside the command."""
+    from monai_rigidreg.registration.files import register_files
+
+    by_path = register(pair["fixed"], pair["moving"], model=small_registrar)
+    fixed, moving = load_volume(pair["fixed"]), load_volume(pair["moving"])
+    by_image = register(fixed, moving, model=small_registrar)
+    for result in (by_path, by_image):
+        assert _couch_keys(result.couch_shift) == COUCH_KEYS
+        assert result.couch_shift["patient_position"] == "HFS" and result.couch_shift["patient_position_assumed"]
+        assert result.couch_shift["isocentre_source"] == "CBCT centre (default)"
+        assert {"inputs", "bundle", "software", "device", "timestamp_utc"} <= set(result.provenance)
+        assert result.timings["load"] <= result.timings["total"]
+    assert by_path.provenance["inputs"]["moving"]["path"].endswith("cbct.nii.gz")
+    assert by_image.provenance["inputs"]["moving"] == {"path": None, "format": "image in memory"}
+    np.testing.assert_allclose(by_path.params, by_image.params, atol=1e-6)  # reading it first changes nothing
+    bare = small_registrar(fixed, moving)
+    assert bare.couch_shift == {} and bare.provenance == {}
+    write_outputs(bare, fixed, moving, tmp_path / "bare", qc=False, names=("ct.nii.gz", "cbct.nii.gz"))
+    files = register_files(small_registrar, pair["fixed"], pair["moving"], tmp_path / "files", qc=False)
+    records = [json.loads((tmp_path / "bare" / "result.json").read_text()),
+               json.loads(files["result.json"].read_text())]
+    for record in records:
+        assert _couch_keys(record["couch_shift"]) == COUCH_KEYS and record["provenance"]["inputs"]
+    assert records[0]["provenance"]["inputs"]["fixed"] == {"path": None, "format": "image in memory",
+                                                           "name": "ct.nii.gz"}
+    shifts = [list(r["couch_shift"]["6dof"].values()) for r in records]
+    np.testing.assert_allclose(shifts[0], shifts[1], atol=1e-6)  # the same defaults as the command's

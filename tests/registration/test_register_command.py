@@ -84,3 +84,25 @@ def test_sigterm_or_ctrl_c_during_register_leaves_nothing(pair, tmp_path, with_s
                                       (130, "monai-rigidreg register: interrupted"))
     assert listing(tmp_path) == []  # no output, no hidden temporary folder, not even the parent it made
     assert signal.getsignal(signal.SIGTERM) == previous
+
+
+def test_register_json_prints_one_json_object_on_stdout_and_the_log_on_stderr(fast_pair, tmp_path):
+    """``register --json``: stdout is one JSON object (result.json's record and the output files by name), the log
+    and warnings go to stderr; without it the summary is followed by a list of the files (for people)."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    argv = [sys.executable, "-m", "monai_rigidreg.cli", "register", "--fixed", str(fast_pair["fixed"]), "--moving",
+            str(fast_pair["moving"]), "--output-dir", str(out), "--no-qc", "--device", "cpu", "--threads", "1"]
+    done = subprocess.run([*argv, "--json"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    record = json.loads(done.stdout)  # the whole of stdout
+    assert record == {**json.loads((out / "result.json").read_text()), "outputs": record["outputs"]}
+    assert sorted(record["outputs"]) == ["TransformParameters.txt", "registered.nii.gz", "result.json",
+                                         "transform.tfm"]
+    assert all(os.path.isfile(p) for p in record["outputs"].values())
+    assert {"params", "couch_shift", "confidence", "flagged", "provenance"} <= set(record)
+    assert "INFO" in done.stderr and "registered" in done.stderr  # the log, on stderr
+    human = subprocess.run([*argv, "--overwrite"], capture_output=True, text=True)
+    assert human.returncode == 0 and "\noutputs:\n" in human.stdout and "transform.tfm" in human.stdout

@@ -693,3 +693,24 @@ def test_ramp_filter_is_the_linear_convolution_with_the_spatial_kernel(nu):
     want = torch.stack([torch.stack([(r * h[i - torch.arange(nu) + nu - 1]).sum() * tau for i in range(nu)])
                         for r in rows])
     torch.testing.assert_close(ramp_filter(rows, tau).double(), want, atol=1e-5, rtol=1e-4)
+
+
+def test_multi30_protocol_and_the_cli_choices():
+    """``multi30``: eight 6-DoF motions with |rx| = |ry| = |rz| = 30 degrees, every sign pattern once; the
+    ``simulate`` command offers exactly the package's protocols."""
+    import argparse
+
+    from monai_rigidreg.simulation import cli as sim_cli
+    from monai_rigidreg.simulation.protocols import PROTOCOLS, protocol_cases
+
+    cases = protocol_cases("multi30")
+    assert len(cases) == 8 and cases[0].params == (5.0, 15.0, -10.0, 30.0, 30.0, -30.0)
+    rot = np.array([c.params[3:] for c in cases])
+    assert np.all(np.abs(rot) == 30.0)
+    assert len({tuple(np.sign(r)) for r in rot}) == 8
+    assert all(np.all(np.abs(c.params[:3]) >= 5.0) for c in cases)
+    parser = argparse.ArgumentParser()
+    sim_cli.add_parser(parser.add_subparsers())
+    action = next(a for sp in parser._subparsers._group_actions for a in sp.choices["simulate"]._actions
+                  if "--protocol" in a.option_strings)
+    assert tuple(action.choices) == PROTOCOLS

@@ -1,0 +1,470 @@
+"""An endless stream of training samples drawn on the fly from a few simulated pairs and real CTs.
+
+Each sample is a CBCT / CT pair on the network grid with its ground truth, drawn fresh from a *source*:
+
+* ``cbct``: a simulated pair (a CBCT reconstructed from simulated cone-beam projections, with its field-of-view
+  mask, and the CT it was simulated from, the ground truth ``T0``: ``monai-rigidreg simulate`` datalists and the
+  clinical cases of :mod:`monai_rigidreg.simulation.clinical`). A further random motion ``A`` is applied in the
+  image domain, so the sample's truth is ``A o T0``.
+* ``ct``: a CT alone, moved by a random motion and made to look like a CBCT in the image domain
+  (:class:`~monai_rigidreg.transforms.RandCBCTDegradation`).
+
+What a sample varies, beyond the motion: the isocentre (a random point of the body up to ``isocenter_max`` from the
+CT centre, or a simulated case's own isocentre), the scanner's field of view (a cylinder about the grid's z axis, cut
+after the motion so that it does not move with the anatomy, never wider than what the source CBCT covers, so its
+edge cannot give the motion away), the CT's couch (removed from the CT as the registrar removes it, or kept), the
+CBCT's couch (the moved CT couch removed, a static treatment couch painted in the scanner frame), image-domain CBCT
+degradation. Every sample is computed with a handful of ``grid_sample`` calls on volumes kept in memory, on the
+sampler's device (CPU or CUDA).
+
+A sample (dict): ``moving``, ``fixed`` (``[1, *network_size]``, normalized HU), ``context`` (``[1,
+*context_size]``: the CT on the context grid, ``context_factor`` times the spacing, same centre), ``moving_fov``
+(``[1, *network_size]``), ``rigid_params`` (``{"params": [6], "matrix": [4, 4], "center": [3]}``: the fixed -> moving
+transform about the grid centre, mm / degrees, the convention of the whole package) and ``source`` (the source's
+name).
+
+>>> from monai_rigidreg.engine.sampler import MotionRange
+>>> MotionRange(60.0, 45.0).max_translation
+60.0
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import SimpleITK as sitk
+import torch
+from torch.utils.data import IterableDataset, get_worker_info
+
+from monai_rigidreg.core.geometry import Grid, matrix_to_params, params_to_matrix
+from monai_rigidreg.core.warp import warp_volume
+from monai_rigidreg.simulation.couch import Couch, couch_fractions
+from monai_rigidreg.transforms.cbct import RandCBCTDegradation
+
+__all__ = ["MotionRange", "PairSource", "RigidPairSampler", "load_sources", "sources_from_datalist",
+           "sources_from_cts"]
+
+AIR_HU = -1000.0
+MIN_VIEW = 0.15
+"""Least share of the network grid a sample's field of view must cover (else it is drawn again)."""
+
+
+@dataclass(frozen=True)
+class MotionRange:
+    """One band of random rigid motion: translation uniform in a ball shell, angles uniform per axis.
+
+    Args:
+        max_translation: largest ``|t|`` (mm); min_translation: smallest.
+        max_rotation: largest angle per axis (degrees; every axis moves).
+        weight: relative probability of the band.
+    """
+
+    max_translation: float
+    max_rotation: float
+    min_translation: float = 0.0
+    weight: float = 1.0
+
+    def draw(self, rng: np.random.Generator) -> np.ndarray:
+        """``(tx, ty, tz, rx, ry, rz)`` (mm, degrees)."""
+        direction = rng.normal(size=3)
+        direction /= max(np.linalg.norm(direction), 1e-12)
+        # uniform in the shell's volume
+        lo3, hi3 = self.min_translation ** 3, self.max_translation ** 3
+        length = float(np.cbrt(rng.uniform(lo3, hi3)))
+        angles = rng.uniform(-self.max_rotation, self.max_rotation, size=3)
+        return np.concatenate([direction * length, angles])
+
+
+DEFAULT_MOTIONS: tuple[MotionRange, ...] = (
+    MotionRange(10.0, 10.0, weight=0.25),
+    MotionRange(40.0, 30.0, weight=0.45),
+    MotionRange(60.0, 45.0, min_translation=30.0, weight=0.30),
+)
+"""The clinic's range of motion: small setup errors, up to 40 mm / 30 degrees, and 30-60 mm / up to 45 degrees."""
+
+
+@dataclass
+class _Volume:
+    """A volume in memory: ``[1, 1, x, y, z]`` float32 (HU or a mask) on ``grid``."""
+
+    data: torch.Tensor
+    grid: Grid
+
+    @classmethod
+    def from_sitk(cls, image: sitk.Image, smooth_to_mm: float | None = None) -> _Volume:
+        img = sitk.Cast(image, sitk.sitkFloat32)
+        if smooth_to_mm is not None:
+            sigma = [max(0.0, 0.5 * (smooth_to_mm - s)) for s in img.GetSpacing()]
+            if max(sigma) > 0.05:
+                img = sitk.SmoothingRecursiveGaussian(img, [max(s, 1e-3) for s in sigma])
+        arr = torch.from_numpy(sitk.GetArrayFromImage(img)).permute(2, 1, 0).contiguous()
+        return cls(arr[None, None], Grid.from_sitk(img))
+
+    def to(self, device: torch.device) -> _Volume:
+        return _Volume(self.data.to(device), self.grid)
+
+    def sample(self, out_grid: Grid, matrix: np.ndarray, fill: float = 0.0, mode: str = "bilinear") -> torch.Tensor:
+        """``[1, *out_grid.size]`` values at ``matrix @ y`` for every point ``y`` of ``out_grid`` (``fill`` outside)."""
+        m = torch.as_tensor(matrix, dtype=torch.float64, device=self.data.device)[None]
+        if fill == 0.0:
+            return warp_volume(self.data, m, out_grid, self.grid, mode=mode)[0]
+        return warp_volume(self.data - fill, m, out_grid, self.grid, mode=mode)[0] + fill
+
+
+@dataclass
+class PairSource:
+    """What samples are drawn from (see the module doc).
+
+    Attributes:
+        name: a label (the CT's name for real CTs).
+        kind: ``"cbct"`` or ``"ct"``.
+        fixed: the CT, smoothed for the network grid; context: the CT smoothed for the context grid.
+        body: the CT's body mask (float 0/1; the couch is outside it).
+        moving, moving_fov: the simulated CBCT and its field of view (``cbct`` sources).
+        matrix: ``T0`` (4x4, fixed -> moving, LPS mm; the identity for ``ct`` sources).
+        isocenter: the simulated case's isocentre (CT frame), or ``None`` (drawn from ``body_points``).
+        body_points: ``[M, 3]`` candidate isocentres (LPS mm): body voxels up to the sampler's reach from the centre.
+        center: the CT's grid centre (LPS mm).
+    """
+
+    name: str
+    kind: str
+    fixed: _Volume
+    context: _Volume
+    body: _Volume
+    moving: _Volume | None = None
+    moving_fov: _Volume | None = None
+    matrix: np.ndarray = field(default_factory=lambda: np.eye(4))
+    isocenter: np.ndarray | None = None
+    body_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    center: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def to(self, device: torch.device) -> PairSource:
+        moved = {k: getattr(self, k).to(device) for k in ("fixed", "context", "body")}
+        for k in ("moving", "moving_fov"):
+            moved[k] = None if getattr(self, k) is None else getattr(self, k).to(device)
+        return PairSource(self.name, self.kind, matrix=self.matrix, isocenter=self.isocenter,
+                          body_points=self.body_points, center=self.center, **moved)
+
+
+def _body_mask(ct: sitk.Image) -> sitk.Image:
+    from monai_rigidreg.simulation.clinical import planning_ct_body as body_mask
+
+    return body_mask(ct)
+
+
+def _body_points(body: sitk.Image, reach_mm: float, min_depth_mm: float = 10.0, stride: int = 2) -> np.ndarray:
+    """Body voxel centres (LPS mm, every ``stride``-th voxel per axis) at least ``min_depth_mm`` inside the body and
+    within ``reach_mm`` of the grid centre."""
+    depth = sitk.SignedMaurerDistanceMap(body, insideIsPositive=True, squaredDistance=False, useImageSpacing=True)
+    arr = sitk.GetArrayFromImage(depth)[::stride, ::stride, ::stride]  # [z, y, x]
+    kk, jj, ii = np.nonzero(arr >= min_depth_mm)
+    index = np.stack([ii, jj, kk], 1).astype(np.float64) * stride
+    grid = Grid.from_sitk(body)
+    to_mm = grid.index_to_physical()
+    pts = index @ to_mm[:3, :3].T + to_mm[:3, 3]
+    keep = np.linalg.norm(pts - grid.center(), axis=1) <= reach_mm
+    return pts[keep] if keep.any() else grid.center()[None]
+
+
+def _read(path: str | Path) -> sitk.Image:
+    return sitk.ReadImage(str(path))
+
+
+def _ct_volumes(ct: sitk.Image, network_spacing: float, context_spacing: float
+                ) -> tuple[_Volume, _Volume, _Volume, sitk.Image]:
+    ct = sitk.Cast(ct, sitk.sitkFloat32)
+    ct = sitk.Threshold(ct, lower=AIR_HU, upper=1e9, outsideValue=AIR_HU)
+    body = _body_mask(ct)
+    return (_Volume.from_sitk(ct, network_spacing), _Volume.from_sitk(ct, context_spacing),
+            _Volume.from_sitk(body), body)
+
+
+def sources_from_datalist(path: str | Path, network_spacing: float = 2.0, context_spacing: float = 4.0,
+                          isocenter_max: float = 100.0, key: str = "training") -> list[PairSource]:
+    """``cbct`` sources from a datalist of simulated pairs (``fixed``, ``moving``, ``moving_fov`` paths relative to
+    the datalist, and ``matrix`` or ``params``/``center``; an ``isocenter`` where the case has one)."""
+    path = Path(path)
+    items = json.loads(path.read_text())[key]
+    cache: dict[str, tuple] = {}
+    out = []
+    for item in items:
+        fixed_path = str((path.parent / item["fixed"]).resolve())
+        if fixed_path not in cache:
+            ct = _read(fixed_path)
+            fixed, context, body, body_img = _ct_volumes(ct, network_spacing, context_spacing)
+            cache[fixed_path] = (fixed, context, body, _body_points(body_img, isocenter_max),
+                                 Grid.from_sitk(ct).center())
+        fixed, context, body, points, center = cache[fixed_path]
+        if "matrix" in item and item["matrix"] is not None:
+            matrix = np.asarray(item["matrix"], dtype=np.float64)
+        else:
+            matrix = params_to_matrix(item["params"], item.get("center"))
+        moving = _Volume.from_sitk(_read(path.parent / item["moving"]))
+        fov = _Volume.from_sitk(_read(path.parent / item["moving_fov"])) if item.get("moving_fov") else None
+        iso = item.get("isocenter")
+        out.append(PairSource(
+            name=str(item.get("ct") or Path(fixed_path).name.split(".")[0]), kind="cbct", fixed=fixed,
+            context=context, body=body, moving=moving, moving_fov=fov, matrix=matrix,
+            isocenter=None if iso is None else np.asarray(iso, dtype=np.float64), body_points=points,
+            center=center))
+    return out
+
+
+def sources_from_cts(paths: Sequence[str | Path], network_spacing: float = 2.0, context_spacing: float = 4.0,
+                     isocenter_max: float = 100.0) -> list[PairSource]:
+    """``ct`` sources from CT files (HU)."""
+    out = []
+    for p in paths:
+        ct = _read(p)
+        fixed, context, body, body_img = _ct_volumes(ct, network_spacing, context_spacing)
+        out.append(PairSource(name=Path(p).name.split(".")[0], kind="ct", fixed=fixed, context=context, body=body,
+                              body_points=_body_points(body_img, isocenter_max), center=Grid.from_sitk(ct).center()))
+    return out
+
+
+def load_sources(datalists: Sequence[str | Path] = (), cts: Sequence[str | Path] = (), network_spacing: float = 2.0,
+                 context_spacing: float = 4.0, isocenter_max: float = 100.0) -> list[PairSource]:
+    """Every source of the datalists (``cbct``) and CT files (``ct``)."""
+    out: list[PairSource] = []
+    for d in datalists:
+        out += sources_from_datalist(d, network_spacing, context_spacing, isocenter_max)
+    out += sources_from_cts(cts, network_spacing, context_spacing, isocenter_max)
+    if not out:
+        raise ValueError("no training sources: give datalists and/or CT files")
+    return out
+
+
+class RigidPairSampler(IterableDataset):
+    """An endless, seeded stream of training samples (see the module doc).
+
+    Args:
+        sources: from :func:`load_sources`.
+        network_size, network_spacing: the network grid (voxels, mm).
+        context_size, context_factor: the context grid (voxels; spacing ``context_factor`` x ``network_spacing``).
+        motions: the motion bands of ``ct`` sources and of simulated pairs without an isocentre.
+        case_motions: the extra motion of simulated cases with their own isocentre (their ``T0`` already carries
+            the clinical setup error).
+        isocenter_jitter: uniform offset (mm per axis) of a simulated case's isocentre.
+        kind_weights: ``{"cbct": w, "ct": w}`` probability of each kind of source.
+        fov_prob, fov_radius, fov_half_length: the scanner field of view (probability, ranges in mm).
+        fixed_couch_removed_prob: probability that the CT's couch is removed (the registrar removes it by default).
+        moving_couch_removed_prob, static_couch_prob: probabilities that the CBCT's moved CT couch is removed and
+            that a static treatment couch is painted in.
+        degradation: keyword arguments of :class:`~monai_rigidreg.transforms.RandCBCTDegradation` for ``ct`` sources
+            (its field-of-view cut is replaced by the sampler's); ``cbct_degradation``: for ``cbct`` sources.
+        hu_range: HU window mapped to [0, 1].
+        seed: the stream's seed (each DataLoader worker draws its own stream from it).
+        device: where samples are computed.
+    """
+
+    def __init__(
+        self,
+        sources: Sequence[PairSource],
+        network_size: Sequence[int] = (64, 64, 64),
+        network_spacing: Sequence[float] = (2.0, 2.0, 2.0),
+        context_size: Sequence[int] | None = None,
+        context_factor: int = 2,
+        motions: Sequence[MotionRange] = DEFAULT_MOTIONS,
+        case_motions: Sequence[MotionRange] = (MotionRange(8.0, 8.0),),
+        isocenter_jitter: float = 10.0,
+        kind_weights: Mapping[str, float] | None = None,
+        fov_prob: float = 0.8,
+        fov_radius: Sequence[float] = (55.0, 130.0),
+        fov_half_length: Sequence[float] = (55.0, 130.0),
+        fixed_couch_removed_prob: float = 0.8,
+        moving_couch_removed_prob: float = 0.6,
+        static_couch_prob: float = 0.5,
+        degradation: Mapping[str, Any] | None = None,
+        cbct_degradation: Mapping[str, Any] | None = None,
+        hu_range: Sequence[float] = (-1000.0, 2000.0),
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+    ) -> None:
+        super().__init__()
+        if not sources:
+            raise ValueError("no sources")
+        self.device = torch.device(device)
+        self.sources = [s.to(self.device) for s in sources]
+        self.network_size = tuple(int(s) for s in network_size)
+        self.network_spacing = tuple(float(s) for s in network_spacing)
+        self.context_size = self.network_size if context_size is None else tuple(int(s) for s in context_size)
+        self.context_spacing = tuple(s * int(context_factor) for s in self.network_spacing)
+        self.motions = tuple(motions)
+        self.case_motions = tuple(case_motions)
+        self.isocenter_jitter = float(isocenter_jitter)
+        weights = {"cbct": 0.7, "ct": 0.3} if kind_weights is None else dict(kind_weights)
+        kinds = sorted({s.kind for s in self.sources})
+        self._kinds = kinds
+        self._kind_p = np.array([float(weights.get(k, 0.0)) for k in kinds])
+        if self._kind_p.sum() <= 0:
+            raise ValueError(f"kind_weights {weights} give no weight to the sources' kinds {kinds}")
+        self._kind_p /= self._kind_p.sum()
+        self.fov_prob = float(fov_prob)
+        self.fov_radius = tuple(float(v) for v in fov_radius)
+        self.fov_half_length = tuple(float(v) for v in fov_half_length)
+        self.fixed_couch_removed_prob = float(fixed_couch_removed_prob)
+        self.moving_couch_removed_prob = float(moving_couch_removed_prob)
+        self.static_couch_prob = float(static_couch_prob)
+        base = {"fov_prob": 0.0}
+        self.degrade_ct = RandCBCTDegradation(**{**base, **(degradation or {})})
+        light = {"blur_prob": 0.5, "blur_sigma": (0.2, 0.8), "downsample_prob": 0.0, "scatter_prob": 0.5,
+                 "scatter_amplitude": (0.0, 0.04), "cupping_prob": 0.5, "cupping_depth": (0.0, 0.04),
+                 "streak_prob": 0.1, "ring_prob": 0.1, "noise_prob": 0.7, "noise_std": (0.0, 25.0), "hu_prob": 0.8}
+        self.degrade_cbct = RandCBCTDegradation(**{**base, **light, **(cbct_degradation or {})})
+        self.hu_range = (float(hu_range[0]), float(hu_range[1]))
+        self.seed = int(seed)
+        self._epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        """A new stream per epoch (called by the training loop; workers read it when their iterator starts)."""
+        self._epoch = int(epoch)
+
+    # -----------------------------------------------------------------------------------------------------------
+    def __iter__(self) -> Iterator[dict[str, Any]]:
+        info = get_worker_info()
+        worker = 0 if info is None else info.id
+        rng = np.random.default_rng([self.seed, self._epoch, worker])
+        self.degrade_ct.set_random_state(seed=int(rng.integers(1 << 31)))
+        self.degrade_cbct.set_random_state(seed=int(rng.integers(1 << 31)))
+        while True:
+            yield self.draw(rng)
+
+    def draw(self, rng: np.random.Generator, tries: int = 10) -> dict[str, Any]:
+        """One sample (see the module doc) from the random generator ``rng``: drawn again (up to ``tries``
+        times) while less than :data:`MIN_VIEW` of the grid is in the field of view."""
+        for _ in range(max(1, int(tries)) - 1):
+            sample = self._draw(rng)
+            if float(sample["moving_fov"].mean()) >= MIN_VIEW:
+                return sample
+        return self._draw(rng)
+
+    def _draw(self, rng: np.random.Generator) -> dict[str, Any]:
+        kind = self._kinds[int(rng.choice(len(self._kinds), p=self._kind_p))]
+        pool = [s for s in self.sources if s.kind == kind]
+        src = pool[int(rng.integers(len(pool)))]
+        if src.isocenter is not None:
+            g = src.isocenter + rng.uniform(-self.isocenter_jitter, self.isocenter_jitter, 3)
+            bands = self.case_motions
+        else:
+            g = src.body_points[int(rng.integers(len(src.body_points)))]
+            bands = self.motions
+        p = np.array([b.weight for b in bands], dtype=np.float64)
+        band = bands[int(rng.choice(len(bands), p=p / p.sum()))]
+        a = params_to_matrix(band.draw(rng), g)  # the extra motion about the isocentre
+        t1 = a @ src.matrix  # fixed -> moving of the sample
+        grid = Grid.centered(self.network_size, self.network_spacing, g)
+        ctx_grid = Grid.centered(self.context_size, self.context_spacing, g)
+        eye = np.eye(4)
+        fixed = src.fixed.sample(grid, eye, AIR_HU)
+        context = src.context.sample(ctx_grid, eye, AIR_HU)
+        if rng.random() < self.fixed_couch_removed_prob:
+            fixed = torch.where(src.body.sample(grid, eye) > 0.5, fixed, torch.full_like(fixed, AIR_HU))
+            context = torch.where(src.body.sample(ctx_grid, eye) > 0.5, context, torch.full_like(context, AIR_HU))
+        inv_t1 = np.linalg.inv(t1)
+        if src.kind == "cbct":
+            inv_a = np.linalg.inv(a)
+            moving = src.moving.sample(grid, inv_a, AIR_HU)
+            covered = _inside(src.moving.grid, grid, inv_a, moving.device)
+            if src.moving_fov is not None:
+                covered &= src.moving_fov.sample(grid, inv_a) > 0.5
+        else:
+            moving = src.fixed.sample(grid, inv_t1, AIR_HU)
+            covered = _inside(src.fixed.grid, grid, inv_t1, moving.device)
+        moved_body = src.body.sample(grid, inv_t1) > 0.5
+        if rng.random() < self.moving_couch_removed_prob:
+            moving = torch.where(moved_body, moving, torch.full_like(moving, AIR_HU))
+        if rng.random() < self.static_couch_prob:
+            moving = self._paint_couch(moving, moved_body, grid, rng)
+        fov = self._field_of_view(covered, grid, rng)
+        moving = self._degrade(moving, grid, src.kind)
+        moving = torch.where(fov, moving, torch.full_like(moving, AIR_HU))
+        lo, hi = self.hu_range
+        norm = [((v - lo) / (hi - lo)).clamp(0.0, 1.0) for v in (moving, fixed, context)]
+        params = matrix_to_params(t1, g)
+        return {
+            "moving": norm[0].float(), "fixed": norm[1].float(), "context": norm[2].float(),
+            "moving_fov": fov.float(),
+            "rigid_params": {"params": torch.as_tensor(params, dtype=torch.float32),
+                             "matrix": torch.as_tensor(t1, dtype=torch.float64),
+                             "center": torch.as_tensor(g, dtype=torch.float64)},
+            "source": src.name,
+        }
+
+    # -----------------------------------------------------------------------------------------------------------
+    def _field_of_view(self, covered: torch.Tensor, grid: Grid, rng: np.random.Generator) -> torch.Tensor:
+        """The scanner's field of view on the grid: a cylinder about the grid's z axis cut by a slab along z, never
+        reaching voxels the source does not cover (so the source's own edge stays out of view). The drawn
+        half-length is shortened first to the nearest uncovered voxel inside the drawn radius (a CT shorter than
+        the scan), then the radius to the nearest uncovered voxel inside that slab."""
+        x, y, z = _axes(grid, covered.device)
+        shape = covered.shape[1:]
+        rr = (x[:, None, None] ** 2 + y[None, :, None] ** 2).sqrt().expand(shape)
+        zz = z.abs()[None, None, :].expand(shape)
+        outside = ~covered[0]
+        radius = rng.uniform(*self.fov_radius) if rng.random() < self.fov_prob else math.inf
+        half = rng.uniform(*self.fov_half_length) if rng.random() < self.fov_prob else math.inf
+        limit = outside & (rr <= radius)
+        if bool(limit.any()):
+            half = min(half, float(zz[limit].min()) - 0.5 * grid.spacing[2])
+        limit = outside & (zz <= half)
+        if bool(limit.any()):
+            radius = min(radius, float(rr[limit].min()) - 0.5 * min(grid.spacing[:2]))
+        return ((rr <= radius) & (zz <= half))[None]
+
+    def _paint_couch(self, moving: torch.Tensor, body: torch.Tensor, grid: Grid, rng: np.random.Generator
+                     ) -> torch.Tensor:
+        """A static treatment couch just posterior to the (moved) body, in the scanner frame of the grid."""
+        x, y, _ = _axes(grid, moving.device)
+        yy = y[None, :, None].expand(body.shape[1:]) + float(grid.center()[1])
+        in_body = body[0]
+        if not bool(in_body.any()):
+            return moving
+        top = float(yy[in_body].max()) + float(rng.uniform(0.0, 6.0))
+        couch = Couch(top_y_mm=top, center_x_mm=float(grid.center()[0] + rng.uniform(-20, 20)),
+                      width_mm=float(rng.uniform(450, 550)),
+                      curvature_radius_mm=None if rng.random() < 0.5 else float(rng.uniform(1000, 3000)),
+                      core_hu=float(rng.uniform(-900, -700)), shell_hu=float(rng.uniform(200, 800)),
+                      rail_width_mm=0.0 if rng.random() < 0.5 else 20.0)
+        ref = sitk.Image([int(self.network_size[0]), int(self.network_size[1]), 1], sitk.sitkFloat32)
+        ref.SetSpacing(self.network_spacing)
+        corner = grid.index_to_physical()[:3, 3]
+        ref.SetOrigin([float(corner[0]), float(corner[1]), 0.0])
+        fr = couch_fractions(ref, couch)  # [1, y, x] arrays
+        hu = {"shell": couch.shell_hu, "core": couch.core_hu, "rail": couch.rail_hu}
+        total = sum(np.broadcast_to(fr[k], (1, ref.GetSize()[1], ref.GetSize()[0])) for k in hu)
+        paint = sum(np.broadcast_to(fr[k], (1, ref.GetSize()[1], ref.GetSize()[0])) * v for k, v in hu.items())
+        f, v = (torch.as_tensor(np.ascontiguousarray(a[0].T), dtype=moving.dtype,
+                                device=moving.device)[None, :, :, None]
+                for a in (total, paint))  # [y, x] -> [1, x, y, 1]
+        return moving * (1 - f) + v
+
+    def _degrade(self, moving: torch.Tensor, grid: Grid, kind: str) -> torch.Tensor:
+        from monai.data import MetaTensor
+
+        deg = self.degrade_ct if kind == "ct" else self.degrade_cbct
+        img = MetaTensor(moving, affine=torch.as_tensor(grid.affine("RAS")))
+        return deg(img).as_tensor()
+
+
+def _inside(source: Grid, out_grid: Grid, matrix: np.ndarray, device: torch.device) -> torch.Tensor:
+    """``[1, *out_grid.size]`` bool: the points ``matrix @ y`` of ``out_grid`` that fall inside ``source``'s voxels."""
+    m = source.physical_to_index() @ np.asarray(matrix, dtype=np.float64) @ out_grid.index_to_physical()
+    m = torch.as_tensor(m, dtype=torch.float32, device=device)
+    axes = [torch.arange(n, device=device, dtype=torch.float32) for n in out_grid.size]
+    idx = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1)  # [X, Y, Z, 3]
+    src = idx @ m[:3, :3].T + m[:3, 3]
+    size = torch.as_tensor(source.size, dtype=torch.float32, device=device)
+    return ((src >= -0.5) & (src <= size - 0.5)).all(-1)[None]
+
+
+def _axes(grid: Grid, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-axis voxel positions of an axis-aligned grid relative to its centre (mm)."""
+    return tuple(((torch.arange(n, device=device, dtype=torch.float32) - (n - 1) / 2) * s)
+                 for n, s in zip(grid.size, grid.spacing))

@@ -1,0 +1,85 @@
+#!/usr/bin/env bash
+# The long, resumable training run of the context correlation network (bundle 0.5 weights; see
+# bundles/cbct_ct_rigid/docs/README.md, "Training the next weights").
+#   usage: [DATA=data] [SHARED=../shared/data] [DEVICE=cpu|cuda] [BATCH=4] [EPOCH_LENGTH=100] [WORKERS=1] \
+#          [SAMPLER_DEVICE=cpu|cuda] [CASES=12] [SIM_DEVICE=cpu|cuda] \
+#          scripts/train_context_model.sh [RUN_DIR] [EPOCHS] [--resume]
+# First call: simulates the training data when it is missing (scripts/make_training_data.sh, about 8 minutes on
+# 2 cores; scripts/make_clinical_training_data.py, about 10 minutes), then trains from scratch. Resumed (3rd argument
+# --resume): continues from the newest checkpoint in RUN_DIR/models (epoch, optimizer, learning-rate schedule,
+# samples seen and wall time included); without a checkpoint there it stops with exit status 2 and writes nothing.
+# A new run into a folder that holds an earlier run also stops with exit status 2 (use --resume or another folder).
+# One epoch = 100 iterations of batch 4 = 400 samples; 750 epochs = 300 000 samples.
+# Held out of training (never read here): thorax_4dct_phase00_itkelastix, head_tigre_ct (and the stock Shepp-Logan
+# phantom, the validation set).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+DATA=${DATA:-data}
+SHARED=${SHARED:-../shared/data}
+RUN=${1:-training/context_run}
+EPOCHS=${2:-750}
+RESUME=${3:-}
+DEVICE=${DEVICE:-cpu}
+BATCH=${BATCH:-4}
+EPOCH_LENGTH=${EPOCH_LENGTH:-100}
+WORKERS=${WORKERS:-1}
+SAMPLER_DEVICE=${SAMPLER_DEVICE:-cpu}  # cuda: samples drawn on the GPU (then WORKERS=0)
+CASES=${CASES:-12}                     # clinical training pairs per CT
+SIM_DEVICE=${SIM_DEVICE:-cpu}
+TRAIN_CTS=(abdomen_pelvis_totalsegmentator_example_ct head_tcia_cptac_lscc_ct thorax_tcia_cptac_pda_ct
+           abdomen_pelvis_tcia_tcga_ov_ct)
+cts=()
+for name in "${TRAIN_CTS[@]}"; do
+    f="$SHARED/$name.nii.gz"
+    [ -f "$f" ] || { echo "train_context_model: missing training CT $f" >&2; exit 2; }
+    cts+=("$(realpath "$f")")
+done
+if [ -n "$RESUME" ] && [ "$RESUME" != "--resume" ]; then
+    echo "train_context_model: the third argument must be --resume, got '$RESUME'" >&2; exit 2
+fi
+if [ -n "$RESUME" ]; then
+    if ! ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev/null 2>&1; then
+        echo "train_context_model: --resume: no checkpoint in $RUN/models to resume from" >&2; exit 2
+    fi
+    # the checkpoint must hold this config's network (same parameter names and shapes)
+    python - "$RUN/models" <<'PY' || exit 2
+import re, sys
+from pathlib import Path
+import torch
+from monai.bundle import ConfigParser
+ckpts = sorted(Path(sys.argv[1]).glob("checkpoint_*epoch=*.pt"), key=lambda p: int(re.search(r"epoch=(\d+)", p.name)[1]))
+try:
+    state = torch.load(ckpts[-1], map_location="cpu", weights_only=True)["network"]
+except Exception as exc:  # unreadable, or not a training checkpoint
+    sys.exit(f"train_context_model: --resume: {ckpts[-1]} is not a readable training checkpoint ({exc})")
+parser = ConfigParser()
+parser.read_config(["bundles/cbct_ct_rigid/configs/train.json", "bundles/cbct_ct_rigid/configs/train_context.json"])
+want = {k: tuple(v.shape) for k, v in parser.get_parsed_content("network_def").state_dict().items()}
+have = {k: tuple(v.shape) for k, v in state.items()}
+if want != have:
+    diff = sorted(set(want) ^ set(have)) or sorted(k for k in want if want[k] != have[k])
+    sys.exit(f"train_context_model: --resume: {ckpts[-1]} holds another network than the config's "
+             f"(first differences: {', '.join(diff[:3])}): nothing was changed")
+PY
+elif [ -e "$RUN/history.json" ] || ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev/null 2>&1; then
+    echo "train_context_model: $RUN holds an earlier run: continue it with --resume, or choose another folder" >&2
+    exit 2
+fi
+export OMP_WAIT_POLICY=PASSIVE
+if [ ! -f "$DATA/train.json" ]; then
+    scripts/make_training_data.sh "$DATA" "$SHARED"
+fi
+if [ ! -f "$DATA/clinical/dataset.json" ]; then
+    OMP_NUM_THREADS=1 python scripts/make_clinical_training_data.py --output-dir "$DATA/clinical" \
+        --cases "$CASES" --threads 1 --device "$SIM_DEVICE" "${cts[@]}"
+fi
+list() { local out="[" sep=""; for v in "$@"; do out+="$sep'$v'"; sep=","; done; echo "$out]"; }
+mkdir -p "$RUN"
+python -m monai.bundle run \
+    --config_file "['bundles/cbct_ct_rigid/configs/train.json','bundles/cbct_ct_rigid/configs/train_context.json']" \
+    --bundle_root bundles/cbct_ct_rigid --output_dir "$RUN" --ckpt_dir "$RUN/models" \
+    --train_datalists "$(list "$(realpath "$DATA/train.json")" "$(realpath "$DATA/clinical/dataset.json")")" \
+    --train_cts "$(list "${cts[@]}")" --val_datalist "$DATA/val_paper/dataset.json" \
+    --epochs "$EPOCHS" --seed 0 --device "\$torch.device('$DEVICE')" --batch_size "$BATCH" \
+    --epoch_length "$EPOCH_LENGTH" --num_workers "$WORKERS" --train#dataset#device "$SAMPLER_DEVICE" \
+    --resume "$([ -n "$RESUME" ] && echo True || echo False)" 2>&1 | tee -a "$RUN/train_log.txt"

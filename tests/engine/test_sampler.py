@@ -1,0 +1,136 @@
+"""The on-the-fly training sampler: its ground truth aligns the images, its CT context sits where the network expects
+it, its field of view never shows the source's own edge, and its stream is seeded."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+import torch
+from conftest import synth_ct
+
+from monai_rigidreg.core.geometry import Grid, params_to_matrix, params_to_matrix_torch
+from monai_rigidreg.core.warp import warp_volume
+from monai_rigidreg.engine.sampler import MotionRange, RigidPairSampler, load_sources, sources_from_cts
+from monai_rigidreg.networks.context_net import context_from_fixed
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+SIZE, SPACING = (32, 32, 32), (4.0, 4.0, 4.0)
+
+
+@pytest.fixture(scope="module")
+def ct_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sampler") / "ct.nii.gz"
+    grid = Grid.centered((64, 64, 48), (3.0, 3.0, 3.0), (10.0, -20.0, 5.0))
+    sitk.WriteImage(synth_ct(grid, seed=3, radius_mm=85.0), str(path))
+    return path
+
+
+@pytest.fixture(scope="module")
+def ct_sources(ct_file):
+    return sources_from_cts([ct_file], network_spacing=SPACING[0], context_spacing=2 * SPACING[0],
+                            isocenter_max=40.0)
+
+
+def _sampler(sources, **kw):
+    base = {"network_size": SIZE, "network_spacing": SPACING, "degradation": {"prob": 0.0}, "fov_prob": 0.0,
+            "static_couch_prob": 0.0, "moving_couch_removed_prob": 0.0, "fixed_couch_removed_prob": 0.0}
+    return RigidPairSampler(sources, **{**base, **kw})
+
+
+def _ncc(a: torch.Tensor, b: torch.Tensor, m: torch.Tensor) -> float:
+    a, b = a[m] - a[m].mean(), b[m] - b[m].mean()
+    return float((a * b).sum() / (a.norm() * b.norm() + 1e-9))
+
+
+def test_ground_truth_aligns_moving_with_fixed(ct_sources):
+    """Warping the CBCT by the recorded parameters (fixed -> moving about the grid centre) puts it on the CT; the
+    same parameters with the rotation's sign flipped, or with tx and ty swapped, do not."""
+    sampler = _sampler(ct_sources, motions=(MotionRange(20.0, 20.0, min_translation=10.0),))
+    rng = np.random.default_rng(0)
+    canon = Grid.centered(SIZE, SPACING)
+    for _ in range(3):
+        d = sampler.draw(rng)
+        p = d["rigid_params"]["params"][None].double()
+
+        def warped(params, moving=d["moving"]):
+            return warp_volume(moving[None], params_to_matrix_torch(params).float(), canon, canon)[0]
+
+        inside = warp_volume(d["moving_fov"][None], params_to_matrix_torch(p).float(), canon, canon)[0] > 0.99
+        mask = inside & (d["fixed"] > 0.05)
+        right = _ncc(warped(p), d["fixed"], mask)
+        assert float(p[0, 3:].abs().max()) > 5.0 and abs(float(p[0, 0] - p[0, 1])) > 3.0  # the checks can tell
+        flipped = _ncc(warped(p * torch.tensor([[1, 1, 1, -1, -1, -1.0]])), d["fixed"], mask)
+        swapped = _ncc(warped(p[:, [1, 0, 2, 3, 4, 5]]), d["fixed"], mask)
+        assert right > 0.97
+        assert right - max(flipped, swapped) > 0.05
+        # the matrix and centre recorded beside the parameters are the same transform
+        m = np.asarray(d["rigid_params"]["matrix"])
+        assert np.allclose(params_to_matrix(p[0].numpy(), d["rigid_params"]["center"].numpy()), m, atol=1e-4)
+
+
+def test_context_is_the_ct_on_the_context_grid_of_the_same_centre(ct_sources):
+    """Inside the network grid's extent, the context equals the network grid's CT pooled by two (what the network
+    falls back to without a context): same centre, twice the spacing."""
+    d = _sampler(ct_sources).draw(np.random.default_rng(1))
+    pooled = context_from_fixed(d["fixed"][None], 2)[0]
+    inner = torch.zeros_like(pooled, dtype=torch.bool)
+    inner[:, 9:23, 9:23, 9:23] = True  # away from the border, where the pooled grid is padded
+    assert float((pooled - d["context"])[inner].abs().mean()) < 0.01
+    shifted = torch.roll(d["context"], 1, dims=1)
+    assert float((pooled - shifted)[inner].abs().mean()) > 0.01  # a one-voxel shift is seen
+
+
+def test_field_of_view_stays_inside_what_the_source_covers(ct_sources):
+    """Large motions take part of the grid outside the CT: the field of view (a cylinder about the grid's z axis)
+    never reaches there, so no edge of the source moves with the motion."""
+    sampler = _sampler(ct_sources, fov_prob=1.0, fov_radius=(200.0, 250.0), fov_half_length=(200.0, 250.0),
+                       motions=(MotionRange(60.0, 45.0, min_translation=50.0),))
+    rng = np.random.default_rng(2)
+    cut = 0
+    for _ in range(4):
+        d = sampler.draw(rng)
+        fov = d["moving_fov"][0] > 0.5
+        cut += int((~fov).sum())
+        # where the moved CT does not reach, the moving image is padding (air): no such voxel may be in view
+        m = d["rigid_params"]["matrix"].numpy()
+        grid = Grid.centered(SIZE, SPACING, d["rigid_params"]["center"].numpy())
+        src = ct_sources[0].fixed
+        ones = torch.ones_like(src.data)
+        reach = warp_volume(ones, torch.as_tensor(np.linalg.inv(m))[None].float(), grid, src.grid)[0, 0]
+        assert bool((reach[fov] > 0.5).all())
+        # a cylinder about z: every axial slice's field of view is a disc (or empty)
+        x = (torch.arange(SIZE[0]) - (SIZE[0] - 1) / 2) * SPACING[0]
+        r = (x[:, None] ** 2 + x[None, :] ** 2).sqrt()
+        for k in range(SIZE[2]):
+            sl = fov[:, :, k]
+            if sl.any() and not sl.all():
+                assert bool(r[sl].max() < r[~sl].min() + 1e-6)
+    assert cut > 0  # the motions did take part of the grid outside the CT
+
+
+def test_stream_is_seeded_per_epoch(ct_sources):
+    a = _sampler(ct_sources, seed=5)
+    b = _sampler(ct_sources, seed=5)
+    first = next(iter(a))["rigid_params"]["params"]
+    assert torch.equal(first, next(iter(b))["rigid_params"]["params"])
+    b.set_epoch(1)
+    assert not torch.equal(first, next(iter(b))["rigid_params"]["params"])
+
+
+def test_sources_from_a_simulated_datalist(tiny_dataset):
+    """``cbct`` sources from ``monai-rigidreg simulate``: the sample's truth composes the extra motion with the
+    recorded one, and the samples align."""
+    sources = load_sources(datalists=[tiny_dataset], network_spacing=SPACING[0], context_spacing=8.0,
+                           isocenter_max=20.0)
+    assert sources and all(s.kind == "cbct" and s.moving is not None for s in sources)
+    sampler = _sampler(sources, motions=(MotionRange(5.0, 5.0),), cbct_degradation={"prob": 0.0})
+    d = sampler.draw(np.random.default_rng(3))
+    canon = Grid.centered(SIZE, SPACING)
+    p = d["rigid_params"]["params"][None].double()
+    w = warp_volume(d["moving"][None], params_to_matrix_torch(p).float(), canon, canon)[0]
+    inside = warp_volume(d["moving_fov"][None], params_to_matrix_torch(p).float(), canon, canon)[0] > 0.99
+    mask = inside & (d["fixed"] > 0.05)
+    identity = _ncc(d["moving"], d["fixed"], mask)
+    assert _ncc(w, d["fixed"], mask) > max(0.8, identity + 0.05)

@@ -1,0 +1,153 @@
+"""The peer tools' baselines (ANTs, greedy): each tool's transform convention checked on a pair with a known motion,
+real registrations, real numbers; the wrong readings of the same output (a flipped sign, swapped axes, the inverse)
+shown to miss. The pair itself is checked without the tools (SimpleITK)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from monai_rigidreg.core.geometry import (
+    LPS_TO_RAS,
+    Grid,
+    matrix_to_params,
+    parameter_errors,
+    params_to_sitk,
+    ras_to_lps_transform,
+)
+from monai_rigidreg.registration.classical import moving_footprint, register_sitk
+from monai_rigidreg.registration.peers import (
+    CONVENTION_TOLERANCE,
+    KNOWN_MOTION,
+    ants_available,
+    check_convention,
+    greedy_available,
+    known_motion_pair,
+)
+
+NO_ANTS = "antspyx is not installed (the 'bench' extra; kept out of 'test': it pins numpy<2.4 and scipy<1.16)"
+NO_GREEDY = "picsl-greedy is not installed (the 'bench' and 'test' extras)"
+SWAP_XY = np.array([[0.0, 1, 0, 0], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+
+
+def test_ras_to_lps_transform_flips_input_and_output():
+    m = np.eye(4)
+    m[:3, 3] = (5.0, 6.0, 7.0)
+    np.testing.assert_allclose(ras_to_lps_transform(m)[:3, 3], (-5.0, -6.0, 7.0))
+    r = params_to_sitk([0, 0, 0, 0, 0, 10.0]).GetMatrix()  # a rotation about z keeps its angle in both frames
+    rot = np.eye(4)
+    rot[:3, :3] = np.reshape(r, (3, 3))
+    np.testing.assert_allclose(ras_to_lps_transform(rot), rot, atol=1e-12)
+    rx = np.eye(4)
+    rx[:3, :3] = np.reshape(params_to_sitk([0, 0, 0, 10.0, 0, 0]).GetMatrix(), (3, 3))
+    np.testing.assert_allclose(matrix_to_params(ras_to_lps_transform(rx))[3], -10.0)  # about x: the sign flips
+    np.testing.assert_allclose(ras_to_lps_transform(ras_to_lps_transform(m)), m)
+    with pytest.raises(ValueError, match="4x4"):
+        ras_to_lps_transform(np.eye(3))
+
+
+def test_known_motion_pair_is_related_by_the_motion():
+    """Without any peer tool: the moving image resampled through the known motion is the fixed image (within the
+    CBCT's footprint, up to the interpolation), through the identity it is not; SimpleITK's Mattes MI, the package's
+    own baseline, recovers the motion within the tolerance."""
+    fixed, moving = known_motion_pair()
+    c = Grid.from_sitk(fixed).center()
+    ref = sitk.GetArrayFromImage(fixed)
+    inside = sitk.GetArrayFromImage(moving_footprint(fixed, moving)) > 0
+
+    def rms(params) -> float:
+        out = sitk.GetArrayFromImage(sitk.Resample(moving, fixed, params_to_sitk(params, c), sitk.sitkLinear, np.nan))
+        ok = inside & np.isfinite(out)
+        return float(np.sqrt(np.mean((out[ok] - ref[ok]) ** 2)))
+
+    assert rms(KNOWN_MOTION) < 0.3 * rms(np.zeros(6))
+    res = register_sitk(fixed, moving, initial_params=np.zeros(6))
+    err = parameter_errors(res.params, KNOWN_MOTION)
+    assert err[:3].max() <= CONVENTION_TOLERANCE[0] and err[3:].max() <= CONVENTION_TOLERANCE[1], err
+
+
+def _misses(matrix_lps: np.ndarray, center: np.ndarray) -> float:
+    """Largest parameter error (mm or degrees) of a reading of a tool's output."""
+    return float(parameter_errors(matrix_to_params(matrix_lps, center), KNOWN_MOTION).max())
+
+
+@pytest.mark.skipif(not greedy_available(), reason=NO_GREEDY)
+def test_greedy_convention_on_a_known_motion():
+    """greedy's matrix is RAS, fixed -> moving: F Q F recovers the motion; Q read as LPS, its inverse, or the x and y
+    axes swapped miss it by degrees or millimetres."""
+    check = check_convention("greedy")
+    assert check["ok"], check["errors"]
+    res = check["result"]
+    assert res.extra["native_space"] == "RAS"
+    q = np.asarray(res.extra["native_matrix"])
+    c = res.center
+    assert _misses(ras_to_lps_transform(q), c) <= CONVENTION_TOLERANCE[1]
+    assert _misses(q, c) > 3.0  # RAS read as LPS: tx, ty, rx, ry flip sign
+    assert _misses(np.linalg.inv(ras_to_lps_transform(q)), c) > 3.0  # moving -> fixed
+    assert _misses(SWAP_XY @ ras_to_lps_transform(q) @ SWAP_XY, c) > 3.0  # x and y transposed
+
+
+@pytest.mark.skipif(not ants_available(), reason=NO_ANTS)
+def test_ants_convention_on_a_known_motion():
+    """ANTs' GenericAffine.mat is LPS, fixed -> moving, read as it is: it recovers the motion; read as RAS, inverted,
+    or with x and y swapped, it misses by degrees or millimetres."""
+    check = check_convention("ants")
+    assert check["ok"], check["errors"]
+    res = check["result"]
+    assert res.extra["native_space"] == "LPS"
+    a = np.asarray(res.extra["native_matrix"])
+    c = res.center
+    assert _misses(a, c) <= CONVENTION_TOLERANCE[1] + 1e-6
+    assert _misses(LPS_TO_RAS @ a @ LPS_TO_RAS, c) > 3.0
+    assert _misses(np.linalg.inv(a), c) > 3.0
+    assert _misses(SWAP_XY @ a @ SWAP_XY, c) > 3.0
+
+
+@pytest.mark.skipif(not greedy_available(), reason=NO_GREEDY)
+def test_greedy_leaves_no_output_and_repeats_with_its_seed(capfd):
+    """Nothing printed (greedy's optimizer writes to the process's stdout directly), and the same seed gives the same
+    answer."""
+    from monai_rigidreg.registration.peers import register_greedy
+
+    fixed, moving = known_motion_pair(size=40, spacing=4.8)
+    a = register_greedy(fixed, moving, iterations=(50, 20), threads=1)
+    b = register_greedy(fixed, moving, iterations=(50, 20), threads=1)
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+    np.testing.assert_array_equal(a.params, b.params)
+    assert a.stop_condition == "NMI -n 50x20"
+
+
+def test_missing_tool_is_an_import_error_naming_the_extra(monkeypatch):
+    import monai_rigidreg.registration.peers as peers
+
+    monkeypatch.setattr(peers, "_installed", lambda name: False)
+    fixed, moving = known_motion_pair(size=8, spacing=24.0)
+    for fn, dist in ((peers.register_ants, "antspyx"), (peers.register_greedy, "picsl-greedy")):
+        with pytest.raises(ImportError, match=rf"monai-rigidreg\[bench\].*{dist}"):
+            fn(fixed, moving)
+    assert not peers.peer_available("ants") and not peers.peer_available("greedy")
+
+
+@pytest.mark.skipif(not greedy_available(), reason=NO_GREEDY)
+def test_evaluate_runs_greedy_beside_sitk_on_the_same_cases(tiny_dataset):
+    from monai_rigidreg.evaluation.evaluate import evaluate_datalist
+
+    res = evaluate_datalist(tiny_dataset, ["sitk", "greedy"], None, progress=False, max_cases=2)
+    by = {(c.case_id, c.method): c for c in res["cases"]}
+    assert sorted({m for _, m in by}) == ["greedy", "sitk"] and len(by) == 4
+    for case in res["cases"]:
+        assert np.isfinite(case.tre_mm) and case.runtime_s > 0
+    assert all(c.extra["stop"].startswith("NMI -n") for c in res["cases"] if c.method == "greedy")
+    assert "greedy" in res["report"]
+
+
+def test_evaluate_refuses_a_peer_method_whose_tool_is_missing(tiny_dataset, monkeypatch):
+    import monai_rigidreg.evaluation.evaluate as evaluate
+    from monai_rigidreg.core.errors import InputError
+
+    monkeypatch.setattr(evaluate, "peer_available", lambda method: False)
+    for method, dist in (("ants", "antspyx"), ("greedy", "picsl-greedy")):
+        with pytest.raises(InputError, match=rf"{dist}.*monai-rigidreg\[bench\]"):
+            evaluate.evaluate_datalist(tiny_dataset, [method], None, progress=False)
