@@ -33,6 +33,14 @@ NEXT_TRAINING_CTS = ("head_tcia_cptac_lscc_ct", "thorax_tcia_cptac_pda_ct", "abd
                      "abdomen_pelvis_totalsegmentator_example_ct")
 """In training of the next network (the context network on main); the shipped weights saw only the last one."""
 SHIPPED_TRAINING_CTS = ("abdomen_pelvis_totalsegmentator_example_ct",)
+NEGATIVE_PARTNERS = (  # (CT, a CBCT of another body region, a CBCT of another patient's same region)
+    ("thorax_4dct_phase00_itkelastix", "head_tigre_ct", "thorax_tcia_cptac_pda_ct"),
+    ("head_tigre_ct", "thorax_4dct_phase00_itkelastix", "head_tcia_cptac_lscc_ct"),
+    ("head_tcia_cptac_lscc_ct", "abdomen_pelvis_tcia_tcga_ov_ct", "head_tigre_ct"),
+    ("thorax_tcia_cptac_pda_ct", "abdomen_pelvis_tcia_tcga_ov_ct", "thorax_4dct_phase00_itkelastix"),
+    ("abdomen_pelvis_tcia_tcga_ov_ct", "head_tcia_cptac_lscc_ct", ""),
+)
+"""The negative set's pairs; the CTs come from ``--paper-cts``' data (the shipped weights trained on none of them)."""
 
 
 @dataclass
@@ -272,19 +280,27 @@ def negative_cases(real_ct_dir: Path, pairs_dir: Path) -> Iterator[CalCase]:
     def first_clinical(ct: str) -> Any:
         return load_clinical_case(pairs_dir / ct / "small_000")
 
+    def other_cbct(source: str) -> tuple[sitk.Image, sitk.Image | None] | None:
+        """A CBCT of ``source``: its first clinical pair's where cached, else its paper pair's."""
+        clinical = first_clinical(source)
+        if clinical is not None:
+            return clinical.cbct, clinical.fov
+        paper = first_paper(source)
+        return None if paper is None else (paper.moving, paper.fov)
+
     none = None
-    thorax, head = "thorax_4dct_phase00_itkelastix", "head_tigre_ct"
-    for ct, other_region, other_patient in ((thorax, head, "thorax_tcia_cptac_pda_ct"),
-                                            (head, thorax, "head_tcia_cptac_lscc_ct")):
+    for ct, other_region, other_patient in NEGATIVE_PARTNERS:
+        paper = first_paper(ct)
         paths = find_cts([ct], Tee(), (ct,))
-        if not paths:
+        if paper is None and not paths:
             continue
-        ct_img = load_volume(paths[0])
+        ct_img = paper.fixed if paper is not None else load_volume(paths[0])
         for kind, source in (("other_region", other_region), ("other_patient", other_patient)):
-            other = first_clinical(source)
+            other = other_cbct(source) if source else None
             if other is not None:
-                yield CalCase(f"negative/{ct}/{kind}_{source}", "negative", ct, ct_img,
-                              _recentred(other.cbct, ct_img), _recentred(other.fov, ct_img), none, {},
+                cbct, fov = other
+                yield CalCase(f"negative/{ct}/{kind}_{source}", "negative", ct, ct_img, _recentred(cbct, ct_img),
+                              None if fov is None else _recentred(fov, ct_img), none, {},
                               {"kind": kind, "cbct_of": source})
         paper = first_paper(ct)
         if paper is None:

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CALIBRATION_FILE", "FEATURES", "ConfidenceCalibration", "load_calibration", "verdict",
+__all__ = ["CALIBRATION_FILE", "FEATURES", "FEATURE_SIGNS", "ConfidenceCalibration", "load_calibration", "verdict",
            "UNCALIBRATED_MEANING"]
 
 logger = logging.getLogger(__name__)
@@ -72,6 +72,15 @@ FEATURES: dict[str, Callable[[dict[str, Any]], float]] = {
 """The features a calibration may use, each a function of ``details.signals``. A name's meaning never changes: a
 new transform gets a new name, so an older calibration file keeps its meaning."""
 
+FEATURE_SIGNS: dict[str, int] = {
+    "log_swap_tre": -1, "log_swap_tre_counted": -1, "local_gain": -1, "tissue_on_air": -1, "ncc_after": +1,
+    "edge_ncc": +1, "overlap_deficit": -1, "region_shift": -1, "rule_logit": +1,
+}
+"""The sign each feature's coefficient may take: the confidence never rises as a failure signal gets worse (a larger
+disagreement, edge gain, tissue on air, uncovered tissue or region shift; a lower match). The fit
+(``bench_confidence_calibration``) drops a feature whose coefficient comes out of sign and refits, and
+:class:`ConfidenceCalibration` refuses a model that breaks it."""
+
 
 @dataclass(frozen=True)
 class ConfidenceCalibration:
@@ -96,6 +105,10 @@ class ConfidenceCalibration:
         if unknown or len(self.features) != len(self.coefficients):
             raise ValueError(f"calibration {self.version}: unknown features {unknown} or a coefficient count that "
                              "does not match the features")
+        against = [f for f, c in zip(self.features, self.coefficients) if c * FEATURE_SIGNS[f] < 0]
+        if against:
+            raise ValueError(f"calibration {self.version}: coefficients of {against} have the wrong sign (the "
+                             "confidence would rise as the failure signal gets worse)")
 
     def probability(self, signals: dict[str, Any]) -> float:
         """The calibrated probability for ``signals`` (``details.signals``), in [0, 1]."""
