@@ -39,6 +39,7 @@ def _sets_module() -> Any:
     spec = importlib.util.spec_from_file_location("calibration_sets_here", SETS_FILE)
     module = importlib.util.module_from_spec(spec)
     assert spec.loader is not None
+    sys.modules[spec.name] = module  # its dataclasses look their module up there
     spec.loader.exec_module(module)
     return module
 

@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 import pytest
-from conftest import run_cli
 
 from monai_rigidreg.registration.calibration import (
     CALIBRATION_FILE,
@@ -56,9 +55,11 @@ def test_the_verdict_rules_and_the_cap_below_the_flag_threshold():
 
 
 def test_confidence_means_what_result_json_says_and_prints_with_two_digits(fast_pair, tmp_path, capsys):
-    code, _ = run_cli(capsys, ["register", "--fixed", fast_pair["fixed"], "--moving", fast_pair["moving"],
-                               "--output-dir", tmp_path / "out", "--no-qc", "--threads", "1"])
-    printed = json.loads(capsys.readouterr().out.split("\n  ")[0])
+    from monai_rigidreg.cli import main
+
+    code = main(["register", "--fixed", str(fast_pair["fixed"]), "--moving", str(fast_pair["moving"]),
+                 "--output-dir", str(tmp_path / "out"), "--no-qc", "--threads", "1"])
+    printed = json.loads(capsys.readouterr().out.split("\noutputs:")[0])
     result = json.loads((tmp_path / "out" / "result.json").read_text())
     assert code == 0 and 0.0 <= result["confidence"] <= 1.0
     assert result["confidence_meaning"].startswith("TRE under 2 mm: the estimated probability")
@@ -67,8 +68,6 @@ def test_confidence_means_what_result_json_says_and_prints_with_two_digits(fast_
     assert printed["confidence_meaning"] == result["confidence_meaning"]
     assert result["flagged"] == (result["confidence"] < load_calibration().flag_below) or result["details"][
         "flag_reasons"]
-
-
 
 
 def _signal_grid():
