@@ -9,6 +9,7 @@ import importlib
 import pytest
 
 MODULES = [
+    "monai_rigidreg.core.command_text",
     "monai_rigidreg.core.geometry",
     "monai_rigidreg.core.lazy_exports",
     "monai_rigidreg.registration.inputs",

@@ -45,6 +45,21 @@ LOSSES = {
 }
 
 
+def median_step_seconds(network, criterion, inferer, optimizer, inputs, targets, steps: int) -> float:
+    """Median seconds of one training step (forward, loss, backward, optimizer step) over ``max(2, steps)`` steps
+    after one warm-up step, on the same batch."""
+    times = []
+    for k in range(max(2, steps) + 1):
+        t0 = time.perf_counter()
+        optimizer.zero_grad()
+        loss = criterion(inferer(inputs, network), targets)
+        loss.backward()
+        optimizer.step()
+        if k:  # the first step warms up
+            times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
 def main() -> None:
     ap = script_parser(__doc__)
     ap.add_argument("--datalist", nargs="+", default=["data/train.json"])
@@ -98,16 +113,7 @@ def main() -> None:
         for b in args.batch_sizes:
             batch = torch.utils.data.default_collate([dataset[i % len(dataset)] for i in range(b)])
             inputs, targets = prepare(batch, device="cpu")
-            steps = []
-            for k in range(max(2, args.samples // b) + 1):
-                t0 = time.perf_counter()
-                optimizer.zero_grad()
-                loss = criterion(inferer(inputs, network), targets)
-                loss.backward()
-                optimizer.step()
-                if k:  # the first step warms up
-                    steps.append(time.perf_counter() - t0)
-            step = statistics.median(steps)
+            step = median_step_seconds(network, criterion, inferer, optimizer, inputs, targets, args.samples // b)
             print(f"| {name} | {b} | {step:.3f} | {b / step:.2f} |")
     print(f"\nload at the end {os.getloadavg()[0]:.2f}")
 
@@ -154,16 +160,7 @@ def context_throughput(args) -> None:
     print("|---|---|---|---|")
     for b in args.batch_sizes:
         inputs, targets = prepare(list_data_collate([sampler.draw(rng) for _ in range(b)]), device="cpu")
-        steps = []
-        for k in range(max(2, args.samples // b) + 1):
-            t0 = time.perf_counter()
-            optimizer.zero_grad()
-            loss = criterion(inferer(inputs, network), targets)
-            loss.backward()
-            optimizer.step()
-            if k:
-                steps.append(time.perf_counter() - t0)
-        step = statistics.median(steps)
+        step = median_step_seconds(network, criterion, inferer, optimizer, inputs, targets, args.samples // b)
         print(f"| context network, train_context.json's loss | {b} | {step:.3f} | {b / step:.2f} |")
     print(f"\nload at the end {os.getloadavg()[0]:.2f}")
 

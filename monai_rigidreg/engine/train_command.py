@@ -1,4 +1,9 @@
-"""``monai-rigidreg train``: a thin wrapper over ``python -m monai.bundle run`` with the bundle's train config."""
+"""``monai-rigidreg train``: train the registration network with the MONAI bundle (wraps 'python -m monai.bundle run').
+
+Runs the bundle's configs/train.json (or multi_gpu_train.json through torchrun with --nproc N). Logs and curves go to
+--output-dir (default ./runs), checkpoints and the best model.pt to --ckpt-dir (default <output-dir>/models); nothing
+is written into the installed package: copy model.pt into a bundle of your own to use it (--bundle).
+"""
 
 from __future__ import annotations
 
@@ -9,6 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from monai_rigidreg.core.command_text import add_command
 from monai_rigidreg.core.errors import InputError, OutputExistsError
 
 __all__ = ["add_parser", "run", "bundle_command", "check_train_args", "refuse_earlier_run", "RUN_FILES"]
@@ -16,14 +22,7 @@ __all__ = ["add_parser", "run", "bundle_command", "check_train_args", "refuse_ea
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``train`` sub-command to ``subparsers`` (``monai-rigidreg``'s); it sets ``func=run``."""
-    p = subparsers.add_parser(
-        "train",
-        help="train the registration network with the MONAI bundle (wraps 'python -m monai.bundle run')",
-        description="Runs the bundle's configs/train.json (or multi_gpu_train.json through torchrun with "
-        "--nproc N). Logs and curves go to --output-dir (default ./runs), checkpoints and the best model.pt to "
-        "--ckpt-dir (default <output-dir>/models); nothing is written into the installed package: copy model.pt "
-        "into a bundle of your own to use it (--bundle).",
-    )
+    p = add_command(subparsers, "train", __doc__, run)
     p.add_argument("--datalist", required=True, type=Path, help="training datalist (monai-rigidreg simulate)")
     p.add_argument("--val-datalist", required=True, type=Path, help="validation datalist (fixed paper-protocol set)")
     p.add_argument("--bundle", type=Path, default=None, help="bundle directory (default: the shipped one)")
@@ -43,7 +42,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--nproc", type=int, default=1, help=">1: torchrun with multi_gpu_train.json (gloo on CPU)")
     p.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                    help="further bundle overrides, e.g. network_def#channels=[16,32,64,64]")
-    p.set_defaults(func=run)
     return p
 
 

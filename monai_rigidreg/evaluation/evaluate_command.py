@@ -1,27 +1,28 @@
-"""``monai-rigidreg evaluate``: the paper's Tables 1 and 2 for one or several methods on a datalist."""
+"""``monai-rigidreg evaluate``: evaluate methods on a datalist with known motion (per-axis errors, TRE, success, time).
+
+Register every case of a datalist (as written by 'simulate') with each method and write cases.csv, summary.json and
+report.md (the reference paper's Tables 1 and 2) to --output-dir, and report.html: the same tables, every case
+(failed and flagged first) and overlays in report_files/.
+"""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+from monai_rigidreg.core.command_text import add_command
+
 __all__ = ["add_parser", "run"]
 
 # copies of evaluation.evaluate.METHODS and evaluation.overlays.DEFAULT_MAX_OVERLAYS (tests/evaluation check that
 # they agree): those modules import torch, and `monai-rigidreg --help` builds this parser
-METHODS = ("network", "network-regression", "network+refine", "sitk", "elastix")
+METHODS = ("network", "network-regression", "network+refine", "sitk", "elastix", "ants", "greedy")
 DEFAULT_MAX_OVERLAYS = 20
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``evaluate`` sub-command to ``subparsers`` (``monai-rigidreg``'s); it sets ``func=run``."""
-    p = subparsers.add_parser(
-        "evaluate",
-        help="evaluate methods on a datalist with known motion (per-axis errors, TRE, success, time)",
-        description="Register every case of a datalist (as written by 'simulate') with each method and write "
-        "cases.csv, summary.json and report.md (the reference paper's Tables 1 and 2) to --output-dir, and "
-        "report.html: the same tables, every case (failed and flagged first) and overlays in report_files/.",
-    )
+    p = add_command(subparsers, "evaluate", __doc__, run)
     p.add_argument("--datalist", required=True, type=Path, help="MONAI datalist JSON with ground truth")
     p.add_argument("--method", nargs="+", default=["network"], choices=METHODS, help="method(s) to run")
     p.add_argument("--output-dir", required=True, type=Path)
@@ -35,7 +36,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="overlays in report.html for cases that neither failed nor were flagged (those always get "
                    "one; default: %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing report in --output-dir")
-    p.set_defaults(func=run)
     return p
 
 

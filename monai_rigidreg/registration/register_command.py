@@ -1,4 +1,11 @@
-"""``monai-rigidreg register``: CT + CBCT in, transform / registered CBCT / result.json / QC figure out."""
+"""``monai-rigidreg register``: register a CBCT (moving) to a planning CT (fixed).
+
+Writes DIR/transform.tfm (ITK Euler3DTransform, fixed->moving, readable by 3D Slicer, ITK and SimpleITK;
+--transform-format h5 for transform.h5), DIR/TransformParameters.txt (the same for elastix's transformix),
+DIR/registered.nii.gz (the CBCT on the CT grid), DIR/result.json (parameters, couch shifts in IEC 61217 terms,
+confidence, audit trail), DIR/qc.png and, when both inputs are DICOM series with their own frames of reference,
+DIR/registration.dcm (a DICOM Spatial Registration object).
+"""
 
 from __future__ import annotations
 
@@ -8,20 +15,14 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from monai_rigidreg.core.command_text import add_command
+
 __all__ = ["add_parser", "run"]
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Add the ``register`` sub-command to ``subparsers`` (``monai-rigidreg``'s); it sets ``func=run``."""
-    p = subparsers.add_parser(
-        "register",
-        help="register a CBCT (moving) to a planning CT (fixed)",
-        description="Writes DIR/transform.tfm (ITK Euler3DTransform, fixed->moving, readable by 3D Slicer, ITK and "
-        "SimpleITK; --transform-format h5 for transform.h5), DIR/TransformParameters.txt (the same for elastix's "
-        "transformix), DIR/registered.nii.gz (the CBCT on the CT grid), DIR/result.json (parameters, couch shifts "
-        "in IEC 61217 terms, confidence, audit trail), DIR/qc.png and, when both inputs are DICOM series with their "
-        "own frames of reference, DIR/registration.dcm (a DICOM Spatial Registration object).",
-    )
+    p = add_command(subparsers, "register", __doc__, run)
     p.add_argument("--fixed", type=Path, default=None, help="planning CT: NIfTI, MHA, NRRD or a DICOM folder")
     p.add_argument("--moving", type=Path, default=None, help="CBCT: NIfTI, MHA, NRRD or a DICOM folder")
     p.add_argument("--datalist", type=Path, default=None,
@@ -79,7 +80,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="the fixed image really is the planning CT although it looks like the CBCT (its box inside "
                    "the moving one's, or a CBCT's cylindrical field of view): keep the warning, do not flag the "
                    "result for it (default: flagged, details.signals.swapped)")
-    p.set_defaults(func=run)
     return p
 
 

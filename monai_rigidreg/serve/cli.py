@@ -1,6 +1,12 @@
-"""``monai-rigidreg serve``: run the DICOM registration service, or ask it for its status, or trigger a series.
+"""``monai-rigidreg serve``: DICOM registration service: receive CT and CBCT series, register each CBCT, send the REG.
 
-::
+A DICOM Storage SCP that keeps the planning CTs it receives, registers every complete CBCT series to its patient's
+planning CT with the model loaded once, writes the results (result.json with the couch shifts, the QC figure,
+registration.dcm) per registration and sends the DICOM Spatial Registration to the configured destinations.
+Configuration: one JSON file (monai-rigidreg serve example-config prints one; docs/serve.md describes every key).
+ACTION: run (the default), status, trigger, example-config.
+
+Run the service, or ask it for its status, or trigger a series::
 
     monai-rigidreg serve --config serve.json                 run (until SIGTERM or Ctrl-C)
     monai-rigidreg serve status --config serve.json [--echo] [--json]
@@ -21,6 +27,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from monai_rigidreg.core.command_text import add_command
+
 __all__ = ["add_parser", "run", "EXIT_NOT_RUNNING"]
 
 EXIT_NOT_RUNNING = 3
@@ -32,16 +40,7 @@ _EPILOG = ("serve status exits with 3 where the service is not running (no heart
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        "serve",
-        help="DICOM registration service: receive CT and CBCT series, register each CBCT, send the DICOM REG",
-        description="A DICOM Storage SCP that keeps the planning CTs it receives, registers every complete CBCT "
-        "series to its patient's planning CT with the model loaded once, writes the results (result.json with the "
-        "couch shifts, the QC figure, registration.dcm) per registration and sends the DICOM Spatial Registration to "
-        "the configured destinations. Configuration: one JSON file (monai-rigidreg serve example-config prints one; "
-        "docs/serve.md describes every key). ACTION: run (the default), status, trigger, example-config.",
-        epilog=_EPILOG,
-    )
+    p = add_command(subparsers, "serve", __doc__, run, epilog=_EPILOG)
     p.add_argument("--config", type=Path, default=None, help="the service's configuration file (JSON)")
     actions = p.add_subparsers(dest="serve_action", metavar="ACTION")
     run_p = actions.add_parser("run", help="run the service (the default action)")
@@ -70,7 +69,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     for sub in (run_p, status, trigger, example):
         sub.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS, help="more log output")
         sub.add_argument("-q", "--quiet", action="count", default=argparse.SUPPRESS, help="less log output")
-    p.set_defaults(func=run)
     return p
 
 
