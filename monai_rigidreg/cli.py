@@ -27,7 +27,8 @@ EXIT_CODES = {
     EXIT_INTERNAL: "internal failure (a bug: rerun with -v for the traceback and report it)",
     EXIT_INPUT: "usage error or bad input: a missing, unreadable or unsuitable file, a bad option value, an output "
                 "folder that exists or cannot be made",
-    EXIT_FLAGGED: "register --fail-on-flag: the registration was flagged as a likely failure (outputs written)",
+    EXIT_FLAGGED: "register --fail-on-flag: the registration was flagged as a likely failure (outputs written; "
+                  "why: result.json details.flag_reasons; swapped-looking inputs flag unless --allow-swapped)",
     EXIT_INTERRUPTED: "interrupted (Ctrl-C)",
     EXIT_TERMINATED: "terminated (SIGTERM)",
 }

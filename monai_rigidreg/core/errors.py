@@ -10,8 +10,8 @@ import threading
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["RigidRegError", "InputError", "OutputExistsError", "Terminated", "sigterm_raises", "first_line",
-           "read_error_reason"]
+__all__ = ["RigidRegError", "InputError", "OutputExistsError", "Terminated", "sigterm_raises", "signals_deferred",
+           "first_line", "read_error_reason"]
 
 
 class RigidRegError(Exception):
@@ -73,6 +73,50 @@ def sigterm_raises(only_if_default: bool = False) -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+
+
+DEFERRED_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+"""The signals :func:`signals_deferred` holds back: Ctrl-C and a scheduler's or ``kill``'s stop."""
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Within the block, SIGINT and SIGTERM are recorded instead of acted on; on leaving it the previous handlers are
+    restored and a recorded signal is delivered to them (the first one received), so it interrupts what follows
+    the block instead of the block itself.
+
+    For the few steps that must not stop half-way: creating a folder and taking note of it, removing a staged
+    folder, renaming the finished one into place. Python runs signal handlers in the main thread whichever thread
+    the operating system hands the signal to, so replacing the handlers (not the thread's signal mask) holds them
+    back. Outside the main thread (where Python cannot set handlers) the block runs as it is.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+
+    def record(signum: int, frame: object) -> None:
+        received.append(signum)
+
+    previous = {}
+    try:
+        for signum in DEFERRED_SIGNALS:
+            previous[signum] = signal.signal(signum, record)
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)
+        if received:
+            _deliver(received[0], previous.get(received[0]))
+
+
+def _deliver(signum: int, handler: object) -> None:
+    """Act on a signal held back by :func:`signals_deferred` as its own handler would have."""
+    if callable(handler):
+        handler(signum, None)  # Python's default SIGINT handler raises KeyboardInterrupt, sigterm_raises' Terminated
+    elif handler == signal.SIG_DFL or handler is None:
+        signal.raise_signal(signum)  # the default action: the process ends, its clean-up done
+    # SIG_IGN: ignored, as it would have been
 
 
 def first_line(exc: BaseException) -> str:

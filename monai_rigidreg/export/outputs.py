@@ -18,13 +18,13 @@ from typing import TYPE_CHECKING
 import SimpleITK as sitk
 
 from monai_rigidreg import __version__
-from monai_rigidreg.core.errors import InputError
+from monai_rigidreg.core.errors import InputError, signals_deferred
 from monai_rigidreg.core.geometry import invert_matrix
 from monai_rigidreg.export.elastix_params import ELASTIX_PARAMETER_FILE, write_elastix_transform
 from monai_rigidreg.export.qc_figure import qc_figure
 from monai_rigidreg.export.record import complete_record
 from monai_rigidreg.export.transform_files import write_transform
-from monai_rigidreg.io.staging import staged_output_dir
+from monai_rigidreg.io.staging import staged_output_dir, step
 from monai_rigidreg.io.volumes import resample, save_volume
 
 if TYPE_CHECKING:  # pydicom is imported on use: NIfTI inputs do not pay for it (0.08 s, python -X importtime)
@@ -97,27 +97,39 @@ def write_outputs(
     fill = float(sitk.GetArrayViewFromImage(moving).min())  # io.resample's default: air for a CT
     with staged_output_dir(out, overwrite, replaceable=OUTPUT_FILES) as tmp:
         write_transform(result.transform, tmp / f"transform.{transform_format}")
+        step(f"transform.{transform_format}")
         write_elastix_transform(tmp / ELASTIX_PARAMETER_FILE, result.params, result.center, fixed, fill)
+        step(ELASTIX_PARAMETER_FILE)
         registered = result.registered if result.registered is not None else resample(moving, fixed, result.transform,
                                                                                       default_value=fill)
         # registered.nii.gz is compressed (zlib, outside the GIL) in a worker while the rest is written and the QC
         # figure drawn: 0.142 -> 0.100 s for the two on a bench_speed pair (benchmarks/speed/bench_network_paths.py);
-        # the pool is joined before the staged folder is moved into place or removed, and the worker's error is raised
-        with ThreadPoolExecutor(max_workers=1) as pool:
+        # the worker is joined before the staged folder is moved into place or removed (with Ctrl-C and SIGTERM
+        # held back: an interrupted join would let it write into a folder being removed), and its error is raised
+        pool = ThreadPoolExecutor(max_workers=1)
+        try:
             saving = pool.submit(save_volume, registered, tmp / "registered.nii.gz")
+            step("registered.nii.gz (started)")
             if dicom_references is not None:
                 from monai_rigidreg.export.dicom_reg import write_spatial_registration
 
                 write_spatial_registration(tmp / "registration.dcm", *dicom_references,
                                            invert_matrix(result.matrix), software_version=__version__)
+                step("registration.dcm")
             (tmp / "result.json").write_text(json.dumps(result.to_dict(), indent=2))
+            step("result.json")
             if qc:
                 p = result.params
                 title = (f"tx={p[0]:.2f} ty={p[1]:.2f} tz={p[2]:.2f} mm   rx={p[3]:.2f} ry={p[4]:.2f} rz={p[5]:.2f} "
                          f"deg   confidence={result.confidence:.2f}{'  FLAGGED' if result.flagged else ''}")
                 qc_figure(fixed, moving, registered, tmp / "qc.png", title=title, transform=result.transform,
                           names=names)
+                step("qc.png")
             saving.result()
+            step("registered.nii.gz")
+        finally:
+            with signals_deferred():
+                pool.shutdown(wait=True)
     return {name: out / name for name in OUTPUT_FILES if (out / name).exists()}
 
 

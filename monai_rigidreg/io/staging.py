@@ -2,6 +2,11 @@
 folder another process filled meanwhile (``renameat2(RENAME_NOREPLACE)`` where available).
 
 :func:`staged_output_dir` is what :func:`~monai_rigidreg.export.outputs.write_outputs` and the demo write through.
+Ctrl-C or SIGTERM at any point leaves the finished folder or nothing: the steps that must not stop half-way (making
+the staged folder and taking note of it, removing it after a failure, renaming it into place) run with the signals
+held back (:func:`~monai_rigidreg.core.errors.signals_deferred`) and act on them right after. The writers call
+:func:`step` between their steps: a test sets :data:`step_hook` to interrupt them at each
+(``tests/io/test_staging_signals.py``).
 """
 
 from __future__ import annotations
@@ -13,14 +18,26 @@ import functools
 import os
 import secrets
 import shutil
-from collections.abc import Collection, Iterator
+from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import Any
 
-from monai_rigidreg.core.errors import InputError, OutputExistsError, sigterm_raises
+from monai_rigidreg.core.errors import InputError, OutputExistsError, signals_deferred, sigterm_raises
 from monai_rigidreg.io.volumes import check_output_dir, make_dirs, remove_made_dirs
 
-__all__ = ["staged_output_dir", "check_replaceable"]
+__all__ = ["staged_output_dir", "check_replaceable", "step", "step_hook"]
+
+step_hook: Callable[[str], None] | None = None
+"""Called by :func:`step` with the name of each step of an output writer (``None``: nothing). For tests: a hook
+that raises ``KeyboardInterrupt`` or sends the process SIGINT / SIGTERM at a step checks that an interruption there
+leaves the finished folder or nothing."""
+
+
+def step(name: str) -> None:
+    """A point between two steps of an output writer (``staged:<name>`` inside :func:`staged_output_dir`, the file
+    just written in :func:`~monai_rigidreg.export.outputs.write_outputs`): :data:`step_hook`'s."""
+    if step_hook is not None:
+        step_hook(name)
 
 
 @contextlib.contextmanager
@@ -46,16 +63,25 @@ def staged_output_dir(output_dir: str | Path, overwrite: bool = False,
     if out.is_symlink():
         out = out.resolve()  # a link to a folder: the folder is what gets replaced, the link stays
     with sigterm_raises(only_if_default=True):  # the command line installs its own handler for the whole run
-        made = make_dirs(out.parent)
+        made: list[Path] = []
         tmp = None
         try:
-            tmp = _new_sibling(out, "tmp")
+            with signals_deferred():  # made and tmp name every folder this makes, whenever a signal comes
+                made = make_dirs(out.parent)
+                tmp = _new_sibling(out, "tmp")
+            step("staged:made")
             yield tmp
-            _move_into_place(tmp, out, overwrite)
+            step("staged:written")
+            with signals_deferred():  # renamed into place, or not at all (an old folder put back)
+                _move_into_place(tmp, out, overwrite)
+                tmp = None
+            step("staged:moved")
         except BaseException:
-            if tmp is not None:
-                shutil.rmtree(tmp, ignore_errors=True)
-            remove_made_dirs(made)
+            with signals_deferred():  # a second Ctrl-C does not stop the clean-up half-way
+                step("staged:cleanup")
+                if tmp is not None:
+                    shutil.rmtree(tmp, ignore_errors=True)
+                remove_made_dirs(made)
             raise
 
 

@@ -51,6 +51,7 @@ def register(
     roi: RoiLike = None,
     match: str = "soft",
     keep_couch: bool = False,
+    allow_swapped: bool = False,
 ) -> RegistrationResult:
     """Rigidly register a CBCT (``moving``) to a planning CT (``fixed``).
 
@@ -88,6 +89,10 @@ def register(
             beyond the skin) count as air, and the match weight is zero outside that body, so the CBCT's couch meets no
             weight wherever an estimate puts it. ``True`` keeps them, and so does ``fine_stage=False`` (the learned
             network alone on the inputs as they are).
+        allow_swapped: the fixed image really is the planning CT although it looks like the CBCT (its box inside the
+            moving one's, or a CBCT's truncated cylindrical field of view,
+            :func:`~monai_rigidreg.registration.inputs.swapped_reasons`): the warning stays, the result is not
+            flagged for it (``details.signals.swap_allowed``).
 
     Returns:
         :class:`RegistrationResult` with ``params`` (mm/deg, fixed -> moving, about the fixed image centre),
@@ -117,7 +122,8 @@ def register(
     t_load = time.perf_counter() - t_load
     result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps,
                        resample_moving=resample_moving, moving_fov=moving_fov, fine_stage=fine_stage,
-                       global_init=global_init, roi=roi, match=match, keep_couch=keep_couch)
+                       global_init=global_init, roi=roi, match=match, keep_couch=keep_couch,
+                       allow_swapped=allow_swapped)
     for stage in ("load", "total"):
         result.timings[stage] = result.timings.get(stage, 0.0) + t_load
     return complete_record(result, moving_img, fixed, moving, bundle=registrar.source, device=str(registrar.device))

@@ -40,7 +40,9 @@ from monai_rigidreg.core.geometry import (
 )
 from monai_rigidreg.core.image_ops import erode, gradient_magnitude, masked_ncc, pyramid
 from monai_rigidreg.core.warp import warp_volume_params
+from monai_rigidreg.registration.calibration import verdict
 from monai_rigidreg.registration.match_region import match_weight, weight_on_grid
+from monai_rigidreg.registration.overlap import OVERLAP_FLAG_BELOW
 from monai_rigidreg.registration.region_check import REGION_SHIFT_LIMIT_MM, block_shifts
 
 if TYPE_CHECKING:
@@ -48,6 +50,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CONFIDENCE_THRESHOLD",
+    "FLAG_REASON_TEXT",
     "LOCAL_GAIN_LIMIT",
     "EDGE_SPACING_MM",
     "SWAP_AGREE_MM",
@@ -66,7 +69,17 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 CONFIDENCE_THRESHOLD = 0.5
-"""Results whose confidence falls below this are flagged as likely failures (see :func:`confidence_score`)."""
+"""Results whose rule score (:func:`confidence_score`, ``details.signals.rule_score``) falls below this are flagged
+as likely failures, whatever the calibrated confidence says (``details.flag_reasons``: ``"rule"``); without a
+calibration it is also the confidence's flag threshold."""
+FLAG_REASON_TEXT = {
+    "not_hu": "an input is not in HU",
+    "swapped": "the inputs look swapped",
+    "overlap": "the CT covers too little of the CBCT",
+    "rule": "a failure signal is past its limit",
+    "confidence": "the calibrated confidence is low",
+}
+"""``details.flag_reasons`` in words, for the log."""
 LOCAL_GAIN_LIMIT = 0.01
 """Edge-alignment gain (see :func:`confidence_score`) above which an estimate is treated as likely wrong."""
 EDGE_SPACING_MM = 4.0
@@ -199,8 +212,8 @@ def _masked_swap(moving_t: torch.Tensor, fixed_t: torch.Tensor, fov_w: torch.Ten
     return fixed_t * (fov_w > 0.5).to(fixed_t.dtype)[None], moving_t
 
 
-def swap_inputs(moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, params: np.ndarray, fov: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+def swap_inputs(moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, params: np.ndarray, fov: torch.Tensor,
+                fixed_support: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The swapped-input estimator's ``(moving, fixed)`` for an estimate ``params`` (``[6]`` mm/deg about the grid
     centre): what :func:`assess_estimate` hands ``estimate``, for a caller that starts the swapped estimate early.
 
@@ -209,13 +222,22 @@ def swap_inputs(moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, param
         grid: the network grid.
         params: the estimate whose field-of-view placement masks the CT.
         fov: ``[x, y, z]`` field-of-view mask of ``moving_t`` on ``grid``.
+        fixed_support: ``[x, y, z]`` where the CT has data on ``grid`` (CT frame; ``None``: everywhere), e.g. the
+            CT's box where it does not cover the CBCT (:mod:`~monai_rigidreg.registration.overlap`).
 
     Returns:
         ``([1, x, y, z]`` masked CT, ``[1, x, y, z]`` CBCT): the swapped estimator's moving and fixed inputs.
     """
     with torch.no_grad():
         p = torch.as_tensor(np.asarray(params, dtype=np.float64)[None], dtype=torch.float32)
-        return _masked_swap(moving_t, fixed_t, _placed_fov(fov, p, grid))
+        return _masked_swap(moving_t, fixed_t, _supported(_placed_fov(fov, p, grid), fixed_support))
+
+
+def _supported(fov_w: torch.Tensor, fixed_support: torch.Tensor | None) -> torch.Tensor:
+    """The placed field of view ``fov_w`` ``[x, y, z]`` where the CT has data (``fixed_support`` > 0.5, CT frame)."""
+    if fixed_support is None:
+        return fov_w
+    return fov_w * (fixed_support.to(fov_w.device) > 0.5).to(fov_w.dtype)
 
 
 def _placed_fov(fov: torch.Tensor, params: torch.Tensor, grid: Grid) -> torch.Tensor:
@@ -234,6 +256,7 @@ def assess_estimate(
     region: torch.Tensor | None = None,
     hu_range: tuple[float, float] = (-1000.0, 2000.0),
     swapped: Callable[[], np.ndarray] | None = None,
+    fixed_support: torch.Tensor | None = None,
 ) -> dict[str, Any]:
     """Failure signals of an estimate ``params`` (mm/deg about the grid centre) on preprocessed tensors.
 
@@ -255,6 +278,9 @@ def assess_estimate(
         swapped: instead of ``estimate``, a function returning the swapped estimate already under way (``[6]``,
             the CT's pose in the CBCT's frame as ``estimate`` returns it), e.g. one started on
             :func:`swap_inputs` of an earlier estimate while the caller refined it.
+        fixed_support: ``[x, y, z]`` where the CT has data on ``grid`` (``None``: everywhere): the signals look at
+            the placed field of view inside it only (a CT that does not cover the CBCT,
+            :mod:`~monai_rigidreg.registration.overlap`).
 
     Returns ``ncc_before``/``ncc_after`` (intensity NCC in the field of view), ``edge_ncc`` (NCC of gradient
     magnitudes), ``tissue_on_air`` (:func:`tissue_on_air` of the estimate), ``local_gain`` and ``swap_tre_mm`` (see
@@ -277,7 +303,7 @@ def assess_estimate(
         fixed_f = fixed_t[0].float()
         batch = torch.as_tensor(np.stack(candidates), dtype=torch.float32)
         moved0 = warp_volume_params(moving_t[None].float(), batch[:1], grid)[0, 0]
-        fov_w = _placed_fov(fov, batch[:1], grid)
+        fov_w = _supported(_placed_fov(fov, batch[:1], grid), fixed_support)
         out = {"ncc_before": fov_ncc(moving_t[0], fixed_f, fov), "ncc_after": fov_ncc(moved0, fixed_f, fov_w)}
         out["tissue_on_air"] = tissue_on_air(fixed_f, moved0, erode(fov_w[None, None], (2, 2, 2))[0, 0], hu_range)
         # away from the field-of-view border: the CBCT's own edge there (data to zero) is no anatomy, and the
@@ -329,19 +355,32 @@ class ConfidenceStage:
     def assess(
         self, moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, params: np.ndarray, fov: torch.Tensor,
         swap: bool = True, region: torch.Tensor | None = None, swapped: Callable[[], np.ndarray] | None = None,
+        fixed_support: torch.Tensor | None = None,
     ) -> dict[str, Any]:
         """Failure signals of ``params`` (mm/deg about the grid centre): :func:`assess_estimate` with this
         registrar's network as the swapped-input estimator (``swap=False``: without that check); ``region``: the
         match-region weight on ``grid`` (the edge test looks there only); ``swapped``: the swapped estimate already
-        under way (its result function)."""
+        under way (its result function); ``fixed_support``: where the CT has data on ``grid``."""
         estimate = (lambda m, f: self.estimate(m, f, grid)) if swap else None
         return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate, region=region, hu_range=self.hu_range,
-                               swapped=swapped if swap else None)
+                               swapped=swapped if swap else None, fixed_support=fixed_support)
+
+    @staticmethod
+    def _fixed_support(state: RegistrationState) -> torch.Tensor | None:
+        """Where the CT has data on the winning run's grid (``[x, y, z]``), where the match is restricted to the CT's
+        box (``state.domain``); ``None`` elsewhere."""
+        if state.domain is None:
+            return None
+        return weight_on_grid([state.domain], state.run.grid)[0]
 
     def _assess(self, state: RegistrationState) -> None:
-        """Stage 8, with ``assess``: :meth:`_confidence`, and the flag. An input whose intensities are certainly not
-        HU (:func:`~monai_rigidreg.registration.inputs.not_hu`) gets confidence 0 whatever the signals say: they are
-        calibrated on HU images, and on others they can pass a gross failure."""
+        """Stage 8, with ``assess``: :meth:`_confidence`, the overlap under the final estimate
+        (:meth:`~monai_rigidreg.registration.overlap.OverlapStage._overlap_report`), and the verdict
+        (:func:`~monai_rigidreg.registration.calibration.verdict`): the calibrated confidence (``calibration``) and
+        why the result is flagged (``details.flag_reasons``). An input whose intensities are certainly not HU
+        (:func:`~monai_rigidreg.registration.inputs.not_hu`) or inputs that look swapped
+        (:func:`~monai_rigidreg.registration.inputs.swapped_reasons`, unless allowed) get confidence 0 whatever the
+        signals say: they are calibrated on HU images in the right order."""
         options, timings, details = state.options, state.timings, state.details
         if not options.assess:
             return
@@ -354,26 +393,39 @@ class ConfidenceStage:
         state.params, replaced, signals = self._confidence(
             state.inputs.fixed, state.inputs.moving, state.fov_img, state.fov_t, state.run, state.params,
             state.weights, state.weight_img, roi_img, state.native, state.staged and not options.refine, details,
-            state.early_swap)
+            state.early_swap, self._fixed_support(state), state.domain)
         if state.early_swap is not None:
             timings["swap_estimate"] = state.early_swap.seconds
         if replaced:
             state.net_params = state.params.copy()
-        timings["confidence"] = time.perf_counter() - t
-        confidence = signals.pop("confidence")
+        signals["rule_score"] = signals.pop("confidence")
+        overlap = self._overlap_report(state, params_to_matrix(state.params, state.run.grid.center()))
+        if np.isfinite(overlap):
+            signals["overlap"] = overlap
         if state.inputs.not_hu:
             signals["not_hu"] = state.inputs.not_hu
-            confidence = 0.0
-        state.confidence, state.flagged = confidence, confidence < CONFIDENCE_THRESHOLD
+        if state.inputs.swapped:
+            signals["swapped"] = True
+            signals["swapped_because"] = list(state.inputs.swapped)
+            signals["swap_allowed"] = bool(options.allow_swapped)
+        else:
+            signals["swapped"] = False
+        calibration = getattr(self, "calibration", None)
+        state.confidence, reasons = verdict(signals, calibration, CONFIDENCE_THRESHOLD, OVERLAP_FLAG_BELOW)
+        state.flagged = bool(reasons)
+        timings["confidence"] = time.perf_counter() - t
         details["signals"] = signals
+        details["flag_reasons"] = reasons
+        details["confidence_calibration"] = None if calibration is None else calibration.record()
         if state.flagged:
-            logger.warning("registration flagged as a likely failure (confidence %.2f): check the QC figure",
-                           confidence)
+            logger.warning("registration flagged as a likely failure (confidence %.2f; %s): check the QC figure",
+                           state.confidence, ", ".join(FLAG_REASON_TEXT[r] for r in reasons))
 
     def _confidence(self, fixed_img: sitk.Image, moving_img: sitk.Image, fov_img: sitk.Image, fov_t: torch.Tensor,
                     run: NetworkRun, params: np.ndarray, weights: list[sitk.Image], weight_img: sitk.Image | None,
                     roi_img: sitk.Image | None, native: bool, may_replace: bool, details: dict[str, Any],
-                    early_swap: Background | None = None) -> tuple[np.ndarray, bool, dict[str, Any]]:
+                    early_swap: Background | None = None, fixed_support: torch.Tensor | None = None,
+                    domain: sitk.Image | None = None) -> tuple[np.ndarray, bool, dict[str, Any]]:
         """The failure signals and the confidence of ``params`` (mm/deg about ``run.grid``'s centre), with the
         swapped-input check: where the swapped estimate disagrees by more than ``SWAP_AGREE_MM``, the one whose CBCT
         field of view matches the CT better (inside the match region ``weight_img``) is trusted, and a better
@@ -393,7 +445,8 @@ class ConfidenceStage:
             to_start = invert_matrix(run.start)
             residual = matrix_to_params(to_start @ params_to_matrix(params, grid_center), grid_center)
             signals = self.assess(run.moving_t, run.fixed_t, grid, residual, fov_t, region=region,
-                                  swapped=None if early_swap is None or replaced else early_swap.result)
+                                  swapped=None if early_swap is None or replaced else early_swap.result,
+                                  fixed_support=fixed_support)
             swapped = run.start @ params_to_matrix(signals.pop("swap_params"), grid_center)
             if not signals["swap_tre_mm"] > SWAP_AGREE_MM:
                 break
@@ -406,7 +459,8 @@ class ConfidenceStage:
             # estimate) tends to win on deformed anatomy and its disagreement counts (seed-2500 deformed pairs: false
             # alarms 2 -> 3 of 7; docs/results.md, "Confidence")
             s_est, s_swap = self._image_match(fixed_img, moving_img, fov_img,
-                                              [params_to_matrix(params, grid_center), swapped], weight_img)
+                                              [params_to_matrix(params, grid_center), swapped],
+                                              weight_img if weight_img is not None else domain)
             check = {"estimate_ncc": round(s_est, 4), "swapped_ncc": round(s_swap, 4),
                      "swap_tre_mm": round(signals["swap_tre_mm"], 2)}
             if s_swap > s_est and may_replace and not replaced:

@@ -44,6 +44,7 @@ def register_files(
     roi: Any = None,
     match: str = "soft",
     keep_couch: bool = False,
+    allow_swapped: bool = False,
 ) -> dict[str, Path]:
     """Load both volumes, register them and write the standard outputs.
 
@@ -64,9 +65,9 @@ def register_files(
         reg: ``registration.dcm``: one of :data:`~monai_rigidreg.export.outputs.REG_MODES`.
         transform_format: ``"tfm"`` or ``"h5"`` (the ITK transform file).
         fine_stage: ``False``: the learned regression alone (see :func:`~monai_rigidreg.registration.register`).
-        global_init, roi, match, keep_couch: the global search, the region of interest, the match mode and the
-            couches, as for :func:`~monai_rigidreg.registration.register` (the ROI is read and checked before
-            registering).
+        global_init, roi, match, keep_couch, allow_swapped: the global search, the region of interest, the match
+            mode, the couches and inputs that look swapped, as for :func:`~monai_rigidreg.registration.register` (the
+            ROI is read and checked before registering).
         patient_position: DICOM Patient Position of the CT (``HFS``, ``FFS``, ...) for the couch axes; default the
             CT's DICOM header, else head-first supine (assumed, with a warning). A value given here that the couch
             shifts do not support is refused before registering; one read from the header gives a warning and no
@@ -92,7 +93,8 @@ def register_files(
     fixed_img = load_volume(fixed, series_uid=fixed_series_uid, warnings=load_warnings)
     moving_img = load_volume(moving, series_uid=moving_series_uid, warnings=load_warnings)
     result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps, fine_stage=fine_stage,
-                       global_init=global_init, roi=roi, match=match, keep_couch=keep_couch)
+                       global_init=global_init, roi=roi, match=match, keep_couch=keep_couch,
+                       allow_swapped=allow_swapped)
     result.provenance = provenance
     if load_warnings:  # in the audit trail too, before the registration's own
         result.details["warnings"] = load_warnings + result.details.get("warnings", [])

@@ -3,7 +3,8 @@
 :func:`check_register_inputs` checks paths, cascade steps and the output folder before anything is read (the
 ``register`` command and the bundle's ``inference.json``); :func:`read_inputs` reads both images, refuses a
 constant image or two images that do not overlap, and warns about intensities that are not HU
-(:func:`check_intensities`, :func:`not_hu`) and about a fixed image that looks like the CBCT.
+(:func:`check_intensities`, :func:`not_hu`) and about a fixed image that looks like the CBCT
+(:func:`swapped_reasons`: its box inside the moving one's, or a CBCT's truncated cylindrical field of view).
 
 >>> not_hu(0.0, 255.0), not_hu(-1024.0, 3071.0)
 (True, False)
@@ -14,7 +15,7 @@ constant image or two images that do not overlap, and warns about intensities th
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +29,8 @@ from monai_rigidreg.io.staging import check_replaceable
 from monai_rigidreg.io.volumes import as_image, check_output_dir, grid_within, grids_overlap
 
 __all__ = ["HU_AIR_LIMIT", "EIGHT_BIT_RANGE", "Inputs", "check_intensities", "not_hu", "check_hu",
-           "check_cascade_steps", "check_register_inputs", "read_inputs"]
+           "check_cascade_steps", "check_register_inputs", "read_inputs", "SWAPPED_BOX_SHARE", "TRUNCATED_RIM_SHARE",
+           "truncated_cylinder", "swapped_reasons"]
 
 logger = logging.getLogger(__name__)
 
@@ -38,6 +40,51 @@ HU (or is cropped to the body)."""
 EIGHT_BIT_RANGE = 256.0
 """An image whose intensities span at most this many units is an 8-bit export (or a normalized image), never a CT
 in HU: tissue alone spans fat (-100 HU) to bone (several hundred HU)."""
+
+
+SWAPPED_BOX_SHARE = 0.95
+"""A fixed image whose box lies inside the moving one's and covers less than this share of it (any smaller share:
+a CBCT inside the planning CT's box) looks like the CBCT (:func:`swapped_reasons`). Two boxes alike in size (a CBCT
+resampled onto the CT's grid) do not count."""
+TRUNCATED_RIM_SHARE = 0.2
+"""A cylindrical field of view cuts the body when at least this share of its rim (4-12 mm inside the cylinder's
+edge) is tissue (:func:`truncated_cylinder`): a CBCT's does (0.58-0.71 on the benchmark CBCTs), a planning CT's
+reconstruction circle holds the whole body (0.003-0.023 on the six CTs of ``../shared/data``)."""
+
+
+def truncated_cylinder(image: sitk.Image) -> bool:
+    """Whether ``image`` looks like a CBCT's reconstruction: a cylindrical field of view (the largest cylinder along
+    its z index axis) with one constant value at or below air outside it, that cuts the body (tissue on at least
+    :data:`TRUNCATED_RIM_SHARE` of its rim). Sampled at about 4 mm in-plane and on at most 32 slices."""
+    size = np.array(image.GetSize())
+    spacing = np.array(image.GetSpacing())
+    step_xy = [max(1, int(4.0 / s)) for s in spacing[:2]]
+    step_z = max(1, int(np.ceil(size[2] / 32)))
+    arr = sitk.GetArrayViewFromImage(image)[::step_z, ::step_xy[1], ::step_xy[0]]  # [z, y, x]
+    half = (size[:2] - 1) / 2.0
+    radius = float(min(half[0] * spacing[0], half[1] * spacing[1]))
+    yy, xx = np.meshgrid(np.arange(0, size[1], step_xy[1]), np.arange(0, size[0], step_xy[0]), indexing="ij")
+    r = np.hypot((xx - half[0]) * spacing[0], (yy - half[1]) * spacing[1])
+    outside = r > radius + 2.0 * float(max(spacing[:2]))
+    rim = (r <= radius - 4.0) & (r > radius - 12.0)
+    if outside.sum() < 10 or rim.sum() < 10:
+        return False
+    out_values = arr[:, outside]
+    lo, hi = float(out_values.min()), float(out_values.max())
+    return hi - lo < 1.0 and hi <= HU_AIR_LIMIT and float((arr[:, rim] > HU_AIR_LIMIT).mean()) >= TRUNCATED_RIM_SHARE
+
+
+def swapped_reasons(fixed: sitk.Image, moving: sitk.Image) -> list[str]:
+    """Why the fixed image looks like the CBCT and the moving one like the CT: ``"box"`` (the fixed box lies inside
+    the moving one's, any share below :data:`SWAPPED_BOX_SHARE`), ``"cylinder"`` (the fixed image has a CBCT's
+    truncated cylindrical field of view with air outside, :func:`truncated_cylinder`, and the moving one has not).
+    Empty where neither holds."""
+    reasons = []
+    if grid_within(Grid.from_sitk(fixed), Grid.from_sitk(moving), max_share=SWAPPED_BOX_SHARE):
+        reasons.append("box")
+    if truncated_cylinder(fixed) and not truncated_cylinder(moving):
+        reasons.append("cylinder")
+    return reasons
 
 
 def check_intensities(image: sitk.Image, name: str, hu_range: tuple[float, float] = (-1000.0, 2000.0)) -> list[str]:
@@ -125,7 +172,8 @@ def check_register_inputs(
 @dataclass
 class Inputs:
     """Both images of a registration as :func:`read_inputs` returns them: float32 ``SimpleITK.Image`` s, their
-    grids, the warnings about them, and the names of those whose intensities are certainly not HU."""
+    grids, the warnings about them, the names of those whose intensities are certainly not HU, and why the fixed
+    image looks like the CBCT (:func:`swapped_reasons`; empty: it does not)."""
 
     fixed: sitk.Image
     moving: sitk.Image
@@ -133,14 +181,26 @@ class Inputs:
     moving_grid: Grid
     warnings: list[str]
     not_hu: list[str]
+    swapped: list[str] = field(default_factory=list)
+
+
+SWAPPED_WARNING = {
+    "box": "the fixed image lies inside the moving one and is smaller, as a CBCT would the planning CT",
+    "cylinder": "the fixed image has a CBCT's cylindrical field of view that cuts the body, with air outside it, and "
+                "the moving one has not",
+}
 
 
 def read_inputs(fixed: sitk.Image | str | Path, moving: sitk.Image | str | Path,
-                hu_range: tuple[float, float]) -> Inputs:
+                hu_range: tuple[float, float], allow_swapped: bool = False) -> Inputs:
     """Read (or take) the CT (``fixed``) and the CBCT (``moving``) and check them as a pair.
 
+    A fixed image that looks like the CBCT (:func:`swapped_reasons`) gets a warning; the registrar flags the result
+    unless ``allow_swapped`` (the user says the fixed image really is the smaller one).
+
     Raises:
-        InputError: an unreadable or constant image, or two images that do not overlap in physical space.
+        InputError: an unreadable or constant image, or two images that do not overlap in physical space (their
+            boxes share less than 5 % of the smaller one).
     """
     fixed_img = as_image(fixed, "fixed")
     moving_img = as_image(moving, "moving")
@@ -153,11 +213,13 @@ def read_inputs(fixed: sitk.Image | str | Path, moving: sitk.Image | str | Path,
             "the CT (fixed) and CBCT (moving) do not overlap in physical space: check that both are in the "
             "same patient coordinate system (origins and directions)"
         )
-    if grid_within(fixed_grid, moving_grid):
-        msg = ("the fixed image lies inside the moving one and covers less than half of it, as a CBCT would the "
-               "planning CT: check that fixed (--fixed) is the CT and moving (--moving) the CBCT (swapped, the "
-               "transform and the couch shifts come out inverted)")
+    swapped = swapped_reasons(fixed_img, moving_img)
+    if swapped:
+        msg = (f"{'; '.join(SWAPPED_WARNING[r] for r in swapped)}: check that fixed (--fixed) is the CT and moving "
+               "(--moving) the CBCT (swapped, the transform and the couch shifts come out inverted); "
+               + ("--allow-swapped: not flagged" if allow_swapped else
+                  "the result is flagged (--allow-swapped if the fixed image really is the planning CT)"))
         logger.warning("%s", msg)
         warnings.append(msg)
     return Inputs(fixed_img, moving_img, fixed_grid, moving_grid, warnings,
-                  [name for name, (_, certain) in checked.items() if certain])
+                  [name for name, (_, certain) in checked.items() if certain], swapped)

@@ -85,14 +85,15 @@ class RegistrationEvaluator:
                  refine: bool = False, overwrite: bool = False, qc: bool = True, fine_stage: bool | None = None,
                  isocenter: Any = None, reg: str = "auto", transform_format: str = "tfm",
                  progress: bool = True, patient_position: str | None = None, global_init: bool | None = None,
-                 roi: Any = None, match: str = "soft", keep_couch: bool = False) -> None:
+                 roi: Any = None, match: str = "soft", keep_couch: bool = False,
+                 allow_swapped: bool = False) -> None:
         self.registrar = registrar
         self.dataset = list(dataset)
         self.output_dir = Path(output_dir)
         self.options = {"refine": refine, "overwrite": overwrite, "qc": qc, "fine_stage": fine_stage,
                         "isocenter": isocenter, "reg": reg, "transform_format": transform_format,
                         "patient_position": patient_position, "global_init": global_init, "roi": roi,
-                        "match": match, "keep_couch": keep_couch}
+                        "match": match, "keep_couch": keep_couch, "allow_swapped": allow_swapped}
         self.progress = progress
         # one folder per pair for a datalist (even of one pair), the folder itself for a single --fixed/--moving pair
         self.subfolders = len(self.dataset) > 1 or any(item.get("from_datalist") for item in self.dataset)

@@ -75,7 +75,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "record and 'outputs', the files written by name; with --datalist the batch summary")
     p.add_argument("--fail-on-flag", action="store_true",
                    help="exit with status 3 when the result is flagged as a likely failure (default: 0; the outputs "
-                   "are written either way and result.json says flagged)")
+                   "are written either way and result.json says flagged and why: details.flag_reasons)")
+    p.add_argument("--allow-swapped", action="store_true",
+                   help="the fixed image really is the planning CT although it looks like the CBCT (its box inside "
+                   "the moving one's, or a CBCT's cylindrical field of view): keep the warning, do not flag the "
+                   "result for it (default: flagged, details.signals.swapped)")
     return p
 
 
@@ -127,7 +131,8 @@ def _run_pairs(args: argparse.Namespace) -> int:
         return code
     couch = summary.get("couch_shift", {})
     confidence = summary["confidence"]  # null in result.json where the check did not run
-    print(json.dumps({"params": summary["params"], "confidence": None if confidence is None else round(confidence, 3),
+    print(json.dumps({"params": summary["params"], "confidence": None if confidence is None else round(confidence, 2),
+                      "confidence_meaning": summary.get("confidence_meaning"),
                       "flagged": summary["flagged"], "runtime_s": summary["runtime_s"],
                       "couch_shift_6dof": {k: round(v, 2) for k, v in couch.get("6dof", {}).items()},
                       "couch_shift_3dof": {k: round(v, 2) for k, v in couch.get("3dof", {}).items()},
@@ -156,7 +161,7 @@ def _match_options(args: argparse.Namespace) -> dict[str, Any]:
     from monai_rigidreg.registration.match_region import parse_roi
 
     return {"global_init": False if args.no_global_init else None, "roi": parse_roi(args.roi), "match": args.match,
-            "keep_couch": args.keep_couch}
+            "keep_couch": args.keep_couch, "allow_swapped": args.allow_swapped}
 
 
 def _run_batch(args: argparse.Namespace, registrar_cls: Any, evaluator_cls: Any, pairs_fn: Any) -> int:

@@ -69,12 +69,14 @@ from monai_rigidreg.core.network_grid import NetworkGridSpec
 from monai_rigidreg.export.provenance import bundle_record
 from monai_rigidreg.io.volumes import resample
 from monai_rigidreg.registration.body import BodyMaskCache
+from monai_rigidreg.registration.calibration import UNCALIBRATED_MEANING, load_calibration
 from monai_rigidreg.registration.classical import register_sitk
 from monai_rigidreg.registration.confidence import LOCAL_GAIN_LIMIT, ConfidenceStage, cylindrical_fov_mask, swap_inputs
 from monai_rigidreg.registration.inputs import check_cascade_steps, read_inputs
 from monai_rigidreg.registration.last_level import refine_native
 from monai_rigidreg.registration.match_region import RoiLike, match_weight, parse_roi
 from monai_rigidreg.registration.network_run import NetworkRuns
+from monai_rigidreg.registration.overlap import OverlapStage
 from monai_rigidreg.registration.result import RegistrationResult
 from monai_rigidreg.registration.search import StartChoice, matrix_distance_mm
 from monai_rigidreg.registration.state import Background, RegistrationOptions, RegistrationState
@@ -92,7 +94,7 @@ On the clinical-geometry pairs the last level moves a converged estimate by a fe
 
 
 
-class RigidRegistrar(NetworkRuns, StartChoice, ConfidenceStage):
+class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage):
     """A loaded network plus its preprocessing settings, reusable across many registrations.
 
     Args:
@@ -217,6 +219,9 @@ class RigidRegistrar(NetworkRuns, StartChoice, ConfidenceStage):
         self._bodies = BodyMaskCache()  # the CT's body mask, computed once per planning CT
         self.source: dict[str, Any] = {}  # the bundle and weights it came from (from_bundle), for the audit trail
         self.antialias = True  # as ResampleToNetworkGrid's default, the training preprocessing
+        # what the confidence means: the shipped calibration (signals -> probability), any network's (from_bundle:
+        # the bundle's own where it has one); None: the uncalibrated rule score
+        self.calibration = load_calibration()
 
     @property
     def network_size(self) -> tuple[int, int, int]:
@@ -243,13 +248,15 @@ class RigidRegistrar(NetworkRuns, StartChoice, ConfidenceStage):
         settings.update(overrides)
         registrar = cls(net, device=device, **settings)
         registrar.source = bundle_record(bundle if bundle is not None else default_bundle_path())
+        registrar.calibration = load_calibration(bundle)
         return registrar
 
 
     def __call__(self, fixed: sitk.Image | str | Path, moving: sitk.Image | str | Path, refine: bool = False,
                  cascade_steps: int | None = None, resample_moving: bool = True, moving_fov: sitk.Image | None = None,
                  assess: bool = True, fine_stage: bool | None = None, global_init: bool | None = None,
-                 roi: RoiLike = None, match: str = "soft", keep_couch: bool = False) -> RegistrationResult:
+                 roi: RoiLike = None, match: str = "soft", keep_couch: bool = False,
+                 allow_swapped: bool = False) -> RegistrationResult:
         """Register ``moving`` (CBCT) to ``fixed`` (CT); see :func:`~monai_rigidreg.registration.register`
         (``fine_stage=False``: the learned regression alone, also in the confidence check's swapped-input estimate,
         and no global search; ``None``: as the network is configured, e.g. by the bundle's ``fine_stage``)."""
@@ -262,7 +269,7 @@ class RigidRegistrar(NetworkRuns, StartChoice, ConfidenceStage):
             try:
                 result = self._register(fixed, moving, RegistrationOptions(
                     refine, cascade_steps, resample_moving, moving_fov, assess, bool(global_init), roi, match,
-                    keep_couch))
+                    keep_couch, bool(allow_swapped)))
             finally:
                 # whatever raised, no worker is left using the network after the lock and the fine-stage setting
                 # are released (a worker's own error is dropped here: the caller gets the first one raised)
@@ -298,6 +305,7 @@ class RigidRegistrar(NetworkRuns, StartChoice, ConfidenceStage):
         searching = self._start_search(state)
         self._run_identity(state)
         self._choose_start(state, searching)
+        self._within_ct(state, state.run.total, pose=False)  # the CT covers the CBCT under this estimate?
         self._last_level(state)
         self._refine(state)
         self._assess(state)
@@ -309,7 +317,7 @@ class RigidRegistrar(NetworkRuns, StartChoice, ConfidenceStage):
         match region's weight on the CT, which stages run, and the CBCT's field of view where a stage needs it (the
         refinement, the confidence signals, the global search and the last level)."""
         t_start = time.perf_counter()
-        inputs = read_inputs(fixed, moving, self.hu_range)
+        inputs = read_inputs(fixed, moving, self.hu_range, allow_swapped=options.allow_swapped)
         state = RegistrationState(options, inputs, t_start)
         state.timings["load"] = time.perf_counter() - t_start
         roi = parse_roi(options.roi)  # once: a mask file is read here
@@ -321,6 +329,7 @@ class RigidRegistrar(NetworkRuns, StartChoice, ConfidenceStage):
         if options.refine or options.assess or options.global_init or state.native:
             state.fov_img = (cylindrical_fov_mask(inputs.moving) if options.moving_fov is None
                              else options.moving_fov)
+        self._sample_fov(state)  # an empty field of view is refused here
         return state
 
     def _exclude_couch(self, state: RegistrationState) -> None:
@@ -341,6 +350,9 @@ class RigidRegistrar(NetworkRuns, StartChoice, ConfidenceStage):
         state.region_last = state.weight_img is not None and state.native
         state.pose_weights = ([w for w in (state.body,) if w is not None] if state.region_last
                               else state.weights)
+        # where the CT leaves part of the CBCT's tissue uncovered, the match stays inside the CT's box
+        # (registration.overlap); pairs the CT covers are matched as before
+        self._within_ct(state, None, pose=True)
 
     def _run_identity(self, state: RegistrationState) -> None:
         """Stage 4: the network from the identity, and the details that describe the call."""
@@ -379,17 +391,19 @@ class RigidRegistrar(NetworkRuns, StartChoice, ConfidenceStage):
         run, details = state.run, state.details
         if state.options.assess and not state.options.refine:
             state.early_swap = self._in_background(
-                self.estimate, *swap_inputs(run.moving_t, run.fixed_t, run.grid, run.residual, state.fov_t),
+                self.estimate, *swap_inputs(run.moving_t, run.fixed_t, run.grid, run.residual, state.fov_t,
+                                            self._fixed_support(state)),
                 run.grid, thread_name="monai-rigidreg-swap")
         t = time.perf_counter()
         refined, details["native_level"] = self._native(state.inputs.fixed, state.inputs.moving, run.total,
                                                         state.fov_img, state.weights, run.grid,
                                                         region=state.weight_img is not None)
-        state.params = matrix_to_params(refined, run.grid.center())
+        refined, switched = self._runner_up_within_ct(state, refined)  # partial overlap only (registration.overlap)
+        state.params = matrix_to_params(refined, state.run.grid.center())
         state.net_params = state.params.copy()
         state.timings["native_level"] = time.perf_counter() - t
         if state.early_swap is not None:
-            stale = details["native_level"]["change_mm"] > EARLY_SWAP_MAX_CHANGE_MM
+            stale = switched or details["native_level"]["change_mm"] > EARLY_SWAP_MAX_CHANGE_MM
             details["swap_estimate"] = "after the last level" if stale else "beside the last level"
             if stale:
                 state.early_swap.wait()
@@ -464,7 +478,10 @@ class RigidRegistrar(NetworkRuns, StartChoice, ConfidenceStage):
         if "refine" in details:
             details["refine"]["change"] = {n: float(v) for n, v in zip(PARAM_NAMES, params - net_fixed)}
         timings["total"] = time.perf_counter() - state.t_start
-        return RegistrationResult(params, fixed_center, registered, timings, state.confidence, state.flagged, details)
+        calibration = self.calibration if state.options.assess else None
+        meaning = "" if not state.options.assess else calibration.meaning if calibration else UNCALIBRATED_MEANING
+        return RegistrationResult(params, fixed_center, registered, timings, state.confidence, state.flagged, details,
+                                  confidence_meaning=meaning)
 
 
 @contextlib.contextmanager

@@ -29,11 +29,15 @@ class RegistrationResult:
             waited for it afterwards. The confidence check's swapped-input estimate runs in a worker thread beside
             the last level: ``swap_estimate`` is its own duration (overlapping ``native_level``; ``confidence``
             includes only the wait for it).
-        confidence: score in [0, 1] (see :func:`~monai_rigidreg.registration.confidence.confidence_score`); ``flagged``
-            when below the threshold. 0 where an input's intensities are certainly not HU
-            (:func:`~monai_rigidreg.registration.inputs.not_hu`; ``details.signals.not_hu`` names it): the signals are
-            calibrated on HU.
-        flagged: likely failure: check the QC figure.
+        confidence: a number in [0, 1]; what it means is :attr:`confidence_meaning` (with the shipped calibration
+            the estimated probability that the target registration error is under 2 mm,
+            :mod:`~monai_rigidreg.registration.calibration`). 0 where an input's intensities are certainly not HU
+            (:func:`~monai_rigidreg.registration.inputs.not_hu`; ``details.signals.not_hu`` names it) or the inputs
+            look swapped (``details.signals.swapped``, unless allowed). A flagged result's confidence lies below the
+            flag threshold (``details.confidence_calibration.flag_below``).
+        flagged: likely failure: check the QC figure; ``details.flag_reasons`` says why (``"confidence"``,
+            ``"rule"``, ``"overlap"``, ``"swapped"``, ``"not_hu"``).
+        confidence_meaning: what :attr:`confidence` says, in a sentence (``""`` where the check did not run).
         details: network-only parameters, refinement change, similarity before/after, swap consistency, and
             ``warnings`` (a list of sentences, e.g. an input whose intensities are not HU) where there are any.
         provenance: the audit trail (:func:`~monai_rigidreg.export.provenance.registration_provenance`: inputs and their
@@ -55,6 +59,7 @@ class RegistrationResult:
     details: dict[str, Any] = field(default_factory=dict)
     provenance: dict[str, Any] = field(default_factory=dict)
     couch_shift: dict[str, Any] = field(default_factory=dict)
+    confidence_meaning: str = ""
 
     @property
     def transform(self) -> sitk.Euler3DTransform:
@@ -83,6 +88,7 @@ class RegistrationResult:
                                            for row in LPS_TO_RAS @ invert_matrix(self.matrix) @ LPS_TO_RAS],
             "runtime_s": {k: round(float(v), 4) for k, v in self.timings.items()},
             "confidence": json_safe(float(self.confidence)),  # null where the check did not run
+            "confidence_meaning": self.confidence_meaning or None,
             "flagged": bool(self.flagged),
             "details": json_safe(self.details),
             "provenance": json_safe(self.provenance),

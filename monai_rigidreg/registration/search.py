@@ -359,14 +359,20 @@ class StartChoice:
                                             [c.matrix for c in candidates[1: self.search_starts]], steps,
                                             s.pose_weights, timings, s.body)
                 search["starts_run"] = len(alts)
+                region = None if s.region_last else s.weight_img
                 scores = self._image_match(fixed_img, moving_img, s.fov_img, [run.total] + [a.total for a in alts],
-                                           None if s.region_last else s.weight_img)
+                                           s.domain if region is None else region)
                 search.update(identity_start_ncc=round(scores[0], 4),
                               search_start_ncc=[round(v, 4) for v in scores[1:]])
-                k = int(np.argmax(np.nan_to_num(np.asarray(scores, dtype=np.float64), nan=-np.inf)))
+                ranked = np.nan_to_num(np.asarray(scores, dtype=np.float64), nan=-np.inf)
+                k = int(np.argmax(ranked))
+                runs = [run, *alts]
                 if scores[k] > scores[0]:
                     state.run, started = alts[k - 1], "search"
                     search["start_rank"] = k - 1
+                else:
+                    k = 0
+                state.other_runs = [runs[i] for i in np.argsort(-ranked, kind="stable") if i != k]
                 timings["second_start"] = time.perf_counter() - t
             state.details["global_search"] = search
             state.details["start"] = started

@@ -37,6 +37,7 @@ class RegistrationOptions:
     roi: Any
     match: str
     keep_couch: bool
+    allow_swapped: bool = False
 
 
 @dataclass
@@ -78,6 +79,11 @@ class RegistrationState:
         net_params: the network's estimate (after the last level), before the refinement.
         fov_t: the field of view on ``run.grid``.
         early_swap: the swapped-input estimate started beside the last level.
+        fov_sample: the CBCT's field of view sampled at 4 mm (:func:`~monai_rigidreg.registration.overlap.fov_sample`;
+            ``None`` where there is no field of view).
+        domain: the CT's box as a match weight (:func:`~monai_rigidreg.registration.overlap.ct_domain_weight`), where
+            the CT does not cover the CBCT's tissue (``None``: it does, and nothing is restricted).
+        other_runs: the network's runs from the other starts, best image match first (where the search ran them).
         details, timings: what goes into the result's ``details`` and ``timings``.
     """
 
@@ -100,6 +106,9 @@ class RegistrationState:
     net_params: np.ndarray | None = None
     fov_t: torch.Tensor | None = None
     early_swap: Background | None = None
+    fov_sample: Any = None
+    domain: sitk.Image | None = None
+    other_runs: list[NetworkRun] = field(default_factory=list)
     confidence: float = float("nan")
     flagged: bool = False
 
