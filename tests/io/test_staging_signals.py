@@ -26,6 +26,23 @@ from monai_rigidreg.io import load_volume, staging
 TESTS = Path(__file__).resolve().parents[1]
 
 
+@pytest.fixture(autouse=True)
+def interactive_sigint():
+    """Ctrl-C as at a terminal: Python's ``KeyboardInterrupt`` handler for SIGINT during each test. A shell starts a
+    background job (``cmd &`` without job control, ``nohup``) with SIGINT ignored, and Python then keeps it ignored
+    (as it should for such a job); the tests here are about a user's Ctrl-C, wherever pytest itself was started."""
+    before = signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
+def _sigint_as_at_a_terminal() -> None:
+    """``preexec_fn`` of the command's subprocess: SIGINT's default action, so that the child's Python installs its
+    ``KeyboardInterrupt`` handler even when pytest runs with SIGINT ignored (see :func:`interactive_sigint`)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.fixture(scope="module")
 def result(pair, small_registrar):
     fixed, moving = load_volume(pair["fixed"]), load_volume(pair["moving"])
@@ -137,7 +154,8 @@ def test_register_command_stopped_by_a_signal_from_outside_leaves_nothing(pair, 
     proc = subprocess.Popen(
         [sys.executable, "-c", WRAPPER.format(tests=str(TESTS)), at, str(marker), "register", "--fixed",
          str(pair["fixed"]), "--moving", str(pair["moving"]), "--output-dir", str(work / "new" / "out"),
-         "--threads", "1"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+         "--threads", "1"], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=_sigint_as_at_a_terminal)
     try:
         deadline = time.monotonic() + 120
         while not marker.exists():
