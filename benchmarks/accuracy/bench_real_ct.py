@@ -156,6 +156,28 @@ def summary_table(rows: list[dict], methods: list[str], out: Tee) -> None:
                          f"{sum(bool(c.extra['flagged']) for c in oks)} of {len(oks)} successes flagged")
     if flag_rows:
         out("Failure flag (confidence < 0.5): " + "; ".join(flag_rows) + ".")
+    for m in [m for m in methods if m in ("network", "network-thorough")]:
+        res = [r["results"][m] for r in rows]
+        fell = [c for c in res if (c.extra.get("fallback") or {}).get("run")]
+        reasons: dict[str, int] = {}
+        for c in fell:
+            for k in c.extra["fallback"]["reasons"]:
+                reasons[k] = reasons.get(k, 0) + 1
+        paths = [c.extra.get("path") for c in res]
+        stages = list(dict.fromkeys(k for c in res for k in c.extra.get("timings", {})))
+        out(f"{m}: paths {dict((p, paths.count(p)) for p in dict.fromkeys(paths))}; fallback ran on {len(fell)} of "
+            f"{len(res)} (reasons {reasons}); median seconds per stage (0 where it did not run): " + ", ".join(
+                f"{k} {np.median([c.extra['timings'].get(k, 0.0) for c in res]):.2f}" for k in stages))
+        checks = [c.extra["lead_check"] for c in res if c.extra.get("lead_check")]
+        if checks:  # how close the cases came to the check's limits (lead.py)
+            out(f"  check: confidence min {min(k['confidence'] for k in checks):.3f}, overlap min "
+                f"{min(k['overlap'] for k in checks):.3f}, polish max {max(k['polish_mm'] for k in checks):.2f} mm, "
+                f"translation max {max(k['max_translation_mm'] for k in checks):.1f} mm, rotation max "
+                f"{max(k['max_rotation_deg'] for k in checks):.1f} deg")
+        for r, c in ((r, r["results"][m]) for r in rows if (r["results"][m].extra.get("fallback") or {}).get("run")):
+            others = ", ".join(f"{k} {v.tre_mm:.2f}" for k, v in r["results"].items() if k != m)
+            out(f"  - fallback on {r['ct']} {r['case_id']} [{r['label']}]: {c.extra['lead_check']}; start "
+                f"{c.extra.get('start')}; TRE {c.tre_mm:.2f} mm ({others})")
 
 
 def failure_list(rows: list[dict], methods: list[str], out: Tee) -> None:

@@ -51,6 +51,7 @@ def register(
     roi: RoiLike = None,
     match: str = "soft",
     keep_couch: bool = False,
+    thorough: bool | None = None,
 ) -> RegistrationResult:
     """Rigidly register a CBCT (``moving``) to a planning CT (``fixed``).
 
@@ -88,6 +89,12 @@ def register(
             beyond the skin) count as air, and the match weight is zero outside that body, so the CBCT's couch meets no
             weight wherever an estimate puts it. ``True`` keeps them, and so does ``fine_stage=False`` (the learned
             network alone on the inputs as they are).
+        thorough: ``True`` runs the thorough path: the global search beside the network on every call, the further
+            starts where they disagree and the swapped-input estimate beside the last level. ``None`` (default): the
+            registrar's ``network_leads`` (the shipped bundle: the network-led path,
+            :mod:`monai_rigidreg.registration.lead`: the network from the identity, the last level and a cheap check;
+            the search, further starts and the swapped-input estimate only as a fallback where the check fails,
+            ``details["fallback"]``). ``refine`` always takes the thorough path.
 
     Returns:
         :class:`RegistrationResult` with ``params`` (mm/deg, fixed -> moving, about the fixed image centre),
@@ -117,7 +124,8 @@ def register(
     t_load = time.perf_counter() - t_load
     result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps,
                        resample_moving=resample_moving, moving_fov=moving_fov, fine_stage=fine_stage,
-                       global_init=global_init, roi=roi, match=match, keep_couch=keep_couch)
+                       global_init=global_init, roi=roi, match=match, keep_couch=keep_couch,
+                       thorough=thorough)
     for stage in ("load", "total"):
         result.timings[stage] = result.timings.get(stage, 0.0) + t_load
     return complete_record(result, moving_img, fixed, moving, bundle=registrar.source, device=str(registrar.device))

@@ -338,13 +338,15 @@ class ConfidenceStage:
         return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate, region=region, hu_range=self.hu_range,
                                swapped=swapped if swap else None)
 
-    def _assess(self, state: RegistrationState) -> None:
-        """Stage 8, with ``assess``: :meth:`_confidence`, and the flag. An input whose intensities are certainly not
-        HU (:func:`~monai_rigidreg.registration.inputs.not_hu`) gets confidence 0 whatever the signals say: they are
-        calibrated on HU images, and on others they can pass a gross failure."""
+    def _assess(self, state: RegistrationState, swap: bool = True, record: bool = True) -> dict[str, Any] | None:
+        """Stage 8, with ``assess``: :meth:`_confidence`, and the flag (:meth:`_record_confidence`).
+
+        ``swap=False``: the cheap signals only, without the swapped-input estimate (the network-led path's check,
+        :mod:`~monai_rigidreg.registration.lead`); ``record=False``: computed whether or not the call assesses, and
+        not recorded (the caller decides). Returns the signals with their ``confidence`` (``None``: not computed)."""
         options, timings, details = state.options, state.timings, state.details
-        if not options.assess:
-            return
+        if record and not options.assess:
+            return None
         t = time.perf_counter()
         # the region check looks at the ROI itself (with --match bone too: the blocks need the soft tissue around
         # the bone to match, and the box's layout of blocks)
@@ -354,18 +356,30 @@ class ConfidenceStage:
         state.params, replaced, signals = self._confidence(
             state.inputs.fixed, state.inputs.moving, state.fov_img, state.fov_t, state.run, state.params,
             state.weights, state.weight_img, roi_img, state.native, state.staged and not options.refine, details,
-            state.early_swap)
+            state.early_swap, swap=swap)
         if state.early_swap is not None:
             timings["swap_estimate"] = state.early_swap.seconds
         if replaced:
             state.net_params = state.params.copy()
-        timings["confidence"] = time.perf_counter() - t
+        signals["seconds"] = time.perf_counter() - t
+        if record:
+            self._record_confidence(state, signals)
+        return signals
+
+    @staticmethod
+    def _record_confidence(state: RegistrationState, signals: dict[str, Any]) -> None:
+        """The result's confidence, flag, ``details["signals"]`` and ``timings["confidence"]`` from the signals of
+        :meth:`_assess` (``signals["confidence"]``, ``["seconds"]``). An input whose intensities are certainly not
+        HU (:func:`~monai_rigidreg.registration.inputs.not_hu`) gets confidence 0 whatever the signals say: they are
+        calibrated on HU images, and on others they can pass a gross failure."""
+        signals = dict(signals)
         confidence = signals.pop("confidence")
+        state.timings["confidence"] = signals.pop("seconds")
         if state.inputs.not_hu:
             signals["not_hu"] = state.inputs.not_hu
             confidence = 0.0
         state.confidence, state.flagged = confidence, confidence < CONFIDENCE_THRESHOLD
-        details["signals"] = signals
+        state.details["signals"] = signals
         if state.flagged:
             logger.warning("registration flagged as a likely failure (confidence %.2f): check the QC figure",
                            confidence)
@@ -373,7 +387,8 @@ class ConfidenceStage:
     def _confidence(self, fixed_img: sitk.Image, moving_img: sitk.Image, fov_img: sitk.Image, fov_t: torch.Tensor,
                     run: NetworkRun, params: np.ndarray, weights: list[sitk.Image], weight_img: sitk.Image | None,
                     roi_img: sitk.Image | None, native: bool, may_replace: bool, details: dict[str, Any],
-                    early_swap: Background | None = None) -> tuple[np.ndarray, bool, dict[str, Any]]:
+                    early_swap: Background | None = None, swap: bool = True
+                    ) -> tuple[np.ndarray, bool, dict[str, Any]]:
         """The failure signals and the confidence of ``params`` (mm/deg about ``run.grid``'s centre), with the
         swapped-input check: where the swapped estimate disagrees by more than ``SWAP_AGREE_MM``, the one whose CBCT
         field of view matches the CT better (inside the match region ``weight_img``) is trusted, and a better
@@ -381,7 +396,9 @@ class ConfidenceStage:
         ``roi_img``: the ROI's mask on the CT for the region check
         (:func:`~monai_rigidreg.registration.region_check.block_shifts`; ``None``: no ROI, no check).
         ``early_swap``: the swapped estimate started beside the last level (``_last_level``), used for the first
-        assessment (a replacement's is computed here).
+        assessment (a replacement's is computed here). ``swap=False``: the cheap signals only (edge test,
+        ``tissue_on_air``, the region check), without the swapped-input estimate (the network-led path's check,
+        :mod:`~monai_rigidreg.registration.lead`); ``swap_tre_mm`` is then NaN and does not lower the score.
         Records ``details.swap_check`` (and ``start``, ``native_level`` on a replacement). Returns ``(params,
         replaced, signals)``, ``signals["confidence"]`` included."""
         grid = run.grid
@@ -392,8 +409,10 @@ class ConfidenceStage:
             # in the frame of the winning start: its resampled CBCT and the residual of the final estimate
             to_start = invert_matrix(run.start)
             residual = matrix_to_params(to_start @ params_to_matrix(params, grid_center), grid_center)
-            signals = self.assess(run.moving_t, run.fixed_t, grid, residual, fov_t, region=region,
+            signals = self.assess(run.moving_t, run.fixed_t, grid, residual, fov_t, swap=swap, region=region,
                                   swapped=None if early_swap is None or replaced else early_swap.result)
+            if not swap:
+                break
             swapped = run.start @ params_to_matrix(signals.pop("swap_params"), grid_center)
             if not signals["swap_tre_mm"] > SWAP_AGREE_MM:
                 break
