@@ -36,6 +36,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from monai_rigidreg.core.geometry import Grid, invert_matrix, params_to_matrix, transform_points
+from monai_rigidreg.registration.confidence import swap_inputs
 
 if TYPE_CHECKING:
     from monai_rigidreg.registration.state import Background, RegistrationState
@@ -106,6 +107,8 @@ class LeadPath:
     _assess: Any
     _record_confidence: Any
     _on_grid: Any
+    _in_background: Any
+    estimate: Any
 
     def _lead(self, state: RegistrationState) -> None:
         """Stages 4 and 6 without the search, the check, and the fallback where the check fails."""
@@ -158,15 +161,27 @@ class LeadPath:
     def _fallback(self, state: RegistrationState) -> None:
         """The thorough path's remaining stages from the network's run: the global search (with ``global_init``)
         and the network from its candidates, the choice by image match (:meth:`_choose_start`), the last level
-        again where a candidate won (with the swapped-input estimate beside it), and the full confidence."""
+        again where a candidate won (with the swapped-input estimate beside it), and the full confidence. The
+        swapped-input estimate of the polished estimate runs beside the search (``details["swap_estimate"]``:
+        ``"beside the search"``) and serves where the identity's run stays the start."""
         t = time.perf_counter()
         polished = state.params.copy()
         searching: Background | None = self._start_search(state)
+        run = state.run
+        if state.options.assess:
+            # the swapped-input estimate of the polished estimate beside the search (the network's small operations
+            # keep about one core busy, the search's FFTs the other); used where the identity's run stays the start
+            state.early_swap = self._in_background(
+                self.estimate, *swap_inputs(run.moving_t, run.fixed_t, run.grid, polished, state.fov_t), run.grid,
+                thread_name="monai-rigidreg-swap")
         if searching is not None:
             self._choose_start(state, searching)
         if state.details.get("start", "identity") == "identity":
             state.params, state.net_params = polished, polished.copy()  # the identity's run, already polished
+            if state.early_swap is not None:
+                state.details["swap_estimate"] = "beside the search"
         else:
+            state.early_swap = None  # another start won: its own twin starts beside its last level
             self._last_level(state)
         self._assess(state)
         state.timings["fallback"] = time.perf_counter() - t

@@ -123,3 +123,21 @@ def test_fov_overlap_is_the_share_of_the_field_of_view_inside_the_ct():
     assert fov_overlap(ct, cbct, fov, shift, step_mm=2.0) == pytest.approx(0.5)
     # an empty field of view has no overlap to measure
     assert np.isnan(fov_overlap(ct, cbct, fov * 0, np.eye(4)))
+
+
+def test_a_fallback_that_finds_no_better_start_keeps_the_polished_estimate(fast_pair, registrar, monkeypatch):
+    """With the trained range set below any motion, the easy pair fails the check on ``range`` alone: the search
+    runs and agrees with the network, the twin (started beside the search) agrees too, and the estimate is the
+    polished one the check saw."""
+    import monai_rigidreg.registration.lead as lead_mod
+
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    plain = registrar(fixed, moving, resample_moving=False)
+    monkeypatch.setattr(lead_mod, "LEAD_RANGE_MM", 0.0)
+    res = registrar(fixed, moving, resample_moving=False)
+    assert res.details["fallback"] == {"run": True, "reasons": ["range"]}
+    assert res.details["start"] == "identity" and res.details["swap_estimate"] == "beside the search"
+    assert "global_search" in res.details and res.timings["swap_estimate"] > 0
+    np.testing.assert_allclose(res.params, plain.params, atol=1e-9)
+    assert np.isfinite(res.details["signals"]["swap_tre_mm"]) and res.details["signals"]["swap_tre_mm"] < 3.0
+    assert not res.flagged
