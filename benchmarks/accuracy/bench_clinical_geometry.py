@@ -30,6 +30,9 @@ Each pair is registered by every method in the same run, with the volumes in mem
 * ``network``: the product's default path, ``monai_rigidreg.register(ct, cbct, model=registrar,
   moving_fov=fov, resample_moving=False)`` with ``registrar = RigidRegistrar.from_bundle(device=...)``; on deformed
   pairs also ``roi=`` (the target box, CT LPS mm) when ``register`` accepts it;
+* ``network-thorough`` (optional): the same with ``thorough=True`` (the global search, further starts and the
+  swapped-input estimate on every pair, the default path before 0.5.0.dev); for both network methods the report lists
+  the path taken, how often the network-led path's fallback ran and why, every pair's check and the stage medians;
 * ``elastix``: ``monai_rigidreg.registration.classical.register_elastix`` (elastix's default rigid map; the CT sampled
   where the CBCT's field of view lies at the identity, ``moving_mask=fov``);
 * ``sitk``: ``monai_rigidreg.registration.classical.register_sitk`` (Mattes MI, masked to the field of view);
@@ -516,8 +519,9 @@ def main() -> int:
                     help="pairs in DIR/<ct>/<group>_<nnn> (resumed) (default bench_out/clinical)")
     ap.add_argument("--results", type=Path, default=None, help="also write the printed text to FILE")
     ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=METHODS,
-                    help=f"methods (default {' '.join(DEFAULT_METHODS)}; also network-regression, the learned "
-                         "network alone, elastix-roi, and the peer tools ants and greedy)")
+                    help=f"methods (default {' '.join(DEFAULT_METHODS)}; also network-thorough, the thorough path, "
+                         "network-regression, the learned network alone, elastix-roi, and the peer tools ants and "
+                         "greedy)")
     ap.add_argument("--device", default="cpu", help="device of the network and the simulation (default cpu)")
     ap.add_argument("--threads", type=int, default=2, help="torch, SimpleITK and ITK/elastix threads (default 2)")
     ap.add_argument("--bundle", type=Path, default=None, help="bundle directory (default: the shipped bundle)")

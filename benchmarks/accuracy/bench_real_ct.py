@@ -21,7 +21,9 @@ motion of a small pair through its own output (``monai_rigidreg.registration.pee
 Printed, per CT and over all of them: per method n, mean and median TRE (mm, over the body points the evaluation
 uses), success rate (TRE < 2 mm), the share of cases under 12 mm, the per-axis mean absolute errors, the median time
 per case (volumes in memory; the network methods include the confidence check, as ``evaluate`` runs them) and its
-ratio to elastix's; the identity (no registration) on the same cases for reference; and every failed case
+ratio to elastix's; for ``network`` and ``network-thorough`` (the thorough path, ``register(..., thorough=True)``) the
+path taken, how often the network-led path's fallback ran and why, how close the cases came to its check's limits,
+and the stage medians; the identity (no registration) on the same cases for reference; and every failed case
 (TRE >= 2 mm) per method with its motion and the other methods' TRE on it. ``--results FILE`` writes the same text
 with the command line, the date and the machine load at the top (timings are only indicative when other jobs share
 the CPU).
@@ -218,8 +220,8 @@ def main() -> int:
     ap.add_argument("--output-dir", type=Path, default=Path("bench_out/real_ct"),
                     help="data in DIR/<name>, evaluation outputs in DIR/eval/<name> (default bench_out/real_ct)")
     ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS),
-                    help=f"evaluation methods (default {' '.join(DEFAULT_METHODS)}; also sitk, network+refine, and "
-                         "the peer tools ants and greedy)")
+                    help=f"evaluation methods (default {' '.join(DEFAULT_METHODS)}; also network-thorough, the "
+                         "thorough path, sitk, network+refine, and the peer tools ants and greedy)")
     ap.add_argument("--device", default="cpu", help="device of the network (default cpu)")
     ap.add_argument("--bundle", type=Path, default=None,
                     help="bundle directory of the network methods (default: the shipped bundle)")

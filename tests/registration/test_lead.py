@@ -141,3 +141,24 @@ def test_a_fallback_that_finds_no_better_start_keeps_the_polished_estimate(fast_
     np.testing.assert_allclose(res.params, plain.params, atol=1e-9)
     assert np.isfinite(res.details["signals"]["swap_tre_mm"]) and res.details["signals"]["swap_tre_mm"] < 3.0
     assert not res.flagged
+
+
+def test_register_thorough_takes_the_thorough_path_from_python_and_the_command_line(fast_pair, registrar, tmp_path):
+    import json
+
+    from monai_rigidreg import register
+    from monai_rigidreg.cli import main
+
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    res = register(fixed, moving, model=registrar, resample_moving=False, thorough=True)
+    assert res.details["path"] == "thorough" and "lead_check" not in res.details
+    out = tmp_path / "out"
+    assert main(["register", "--fixed", str(fast_pair["fixed"]), "--moving", str(fast_pair["moving"]),
+                 "--output-dir", str(out), "--no-qc", "--thorough", "--device", "cpu"]) == 0
+    details = json.loads((out / "result.json").read_text())["details"]
+    assert details["path"] == "thorough" and "global_search" in details
+    default = tmp_path / "default"
+    assert main(["register", "--fixed", str(fast_pair["fixed"]), "--moving", str(fast_pair["moving"]),
+                 "--output-dir", str(default), "--no-qc", "--device", "cpu"]) == 0
+    details = json.loads((default / "result.json").read_text())["details"]
+    assert details["path"] == "network-led" and details["fallback"]["run"] is False
