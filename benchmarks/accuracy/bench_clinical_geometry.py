@@ -30,6 +30,9 @@ Each pair is registered by every method in the same run, with the volumes in mem
 * ``network``: the product's default path, ``monai_rigidreg.register(ct, cbct, model=registrar,
   moving_fov=fov, resample_moving=False)`` with ``registrar = RigidRegistrar.from_bundle(device=...)``; on deformed
   pairs also ``roi=`` (the target box, CT LPS mm) when ``register`` accepts it;
+* ``network-thorough`` (optional): the same with ``thorough=True`` (the global search, further starts and the
+  swapped-input estimate on every pair, the default path before 0.5.0.dev); for both network methods the report lists
+  the path taken, how often the network-led path's fallback ran and why, every pair's check and the stage medians;
 * ``elastix``: ``monai_rigidreg.registration.classical.register_elastix`` (elastix's default rigid map; the CT sampled
   where the CBCT's field of view lies at the identity, ``moving_mask=fov``);
 * ``sitk``: ``monai_rigidreg.registration.classical.register_sitk`` (Mattes MI, masked to the field of view);
@@ -98,7 +101,7 @@ REPO = Path(__file__).resolve().parents[2]
 HELD_OUT_CTS = ("thorax_4dct_phase00_itkelastix.nii.gz", "head_tigre_ct.nii.gz")
 TRAINING_CTS = ("abdomen_pelvis_totalsegmentator_example_ct.nii.gz",)
 DEFAULT_CTS = HELD_OUT_CTS + TRAINING_CTS
-METHODS = ("network", "network-regression", "elastix", "sitk", "elastix-roi", "ants", "greedy")
+METHODS = ("network", "network-thorough", "network-regression", "elastix", "sitk", "elastix-roi", "ants", "greedy")
 DEFAULT_METHODS = ("network", "elastix", "sitk")
 GROUPS = ("small", "large", "deformed")
 SUCCESS_MM = 2.0
@@ -196,8 +199,8 @@ def run_method(method: str, ct: Any, case: Any, registrar: Any, roi_supported: b
     c = ct.center
     out: dict[str, Any] = {}
     t0 = time.perf_counter()
-    if method in ("network", "network-regression"):
-        kwargs: dict[str, Any] = {}
+    if method in ("network", "network-thorough", "network-regression"):
+        kwargs: dict[str, Any] = {"thorough": True} if method == "network-thorough" else {}
         if method == "network-regression":  # the learned network alone: no search, no Gauss-Newton, no last level
             kwargs["fine_stage"] = False
         elif deformed and roi_supported:
@@ -205,8 +208,8 @@ def run_method(method: str, ct: Any, case: Any, registrar: Any, roi_supported: b
         res = monai_rigidreg.register(ct.image, case.cbct, model=registrar, moving_fov=case.fov,
                                       resample_moving=False, **kwargs)
         params = np.asarray(res.params, dtype=np.float64)
-        out.update(confidence=float(res.confidence), flagged=bool(res.flagged), roi=bool(kwargs),
-                   details=res.details)
+        out.update(confidence=float(res.confidence), flagged=bool(res.flagged), roi="roi" in kwargs,
+                   details=res.details, timings=dict(res.timings))
         if not np.allclose(np.asarray(res.center), c, atol=1e-3):
             from monai_rigidreg.core.geometry import recenter_params
 
@@ -325,7 +328,7 @@ def group_table(rows: list[dict[str, Any]], methods: list[str], out: Tee) -> Non
             floor = np.array([r["floor"] for r in sub])
             lm_text = f"{_fmt(np.nanmean(lm))} / {_fmt(np.nanmedian(lm))}"
             floor_text = _fmt(np.nanmean(floor)) if any(r["deformed"] for r in sub) else "-"
-            if m == "network":
+            if m in ("network", "network-thorough"):
                 flags = np.array([bool(x["flagged"]) for x in res])
                 ff = f"{int((flags & ~succ).sum())} of {int((~succ).sum())}"
                 fa = f"{int((flags & succ).sum())} of {int(succ.sum())}"
@@ -434,6 +437,46 @@ def targets(rows: list[dict[str, Any]], methods: list[str], out: Tee) -> None:
     out()
 
 
+def path_summary(rows: list[dict[str, Any]], methods: list[str], out: Tee) -> None:
+    """Which path the network methods took (``details["path"]``), how often the network-led path's fallback ran and
+    why (``details["fallback"]``), where the fallback changed the start, and the stage medians (``timings``)."""
+    for m in [m for m in ("network", "network-thorough") if m in methods]:
+        res = [r["results"][m] for r in rows if m in r["results"]]
+        if not res:
+            continue
+        paths = [x["details"].get("path", "?") for x in res]
+        fell = [x for x in res if (x["details"].get("fallback") or {}).get("run")]
+        reasons: dict[str, int] = {}
+        for x in fell:
+            for k in x["details"]["fallback"]["reasons"]:
+                reasons[k] = reasons.get(k, 0) + 1
+        starts: dict[str, int] = {}
+        for x in res:
+            starts[x["details"].get("start", "?")] = starts.get(x["details"].get("start", "?"), 0) + 1
+        out(f"{m}: paths {dict((p, paths.count(p)) for p in sorted(set(paths)))}; fallback ran on {len(fell)} of "
+            f"{len(res)} ({_pct(len(fell) / len(res))}; reasons {reasons}); starts {starts}")
+        checks = [x["details"]["lead_check"] for x in res if x["details"].get("lead_check")]
+        if checks:  # how close the cases came to the check's limits (registration/lead.py)
+            out(f"  check: confidence min {min(k['confidence'] for k in checks):.3f}, overlap min "
+                f"{min(k['overlap'] for k in checks):.3f}, polish max {max(k['polish_mm'] for k in checks):.2f} mm, "
+                f"translation max {max(k['max_translation_mm'] for k in checks):.1f} mm, rotation max "
+                f"{max(k['max_rotation_deg'] for k in checks):.1f} deg")
+        for r in rows:
+            x = r["results"].get(m)
+            if x is None or not x["details"].get("lead_check"):
+                continue
+            key = "landmark" if r["deformed"] else "tre"
+            others = ", ".join(f"{k} {v[key]:.2f}" for k, v in r["results"].items() if k not in (m, "identity"))
+            out(f"  - {r['ct']} {r['case_id']}: fallback {'ran' if x['details']['fallback']['run'] else 'no'}, "
+                f"start {x['details'].get('start')}, {key} {x[key]:.2f}{' flagged' if x['flagged'] else ''} "
+                f"({others}); check {x['details']['lead_check']}")
+        stages = list(dict.fromkeys(k for x in res for k in x.get("timings", {})))
+        if stages:
+            out("  median seconds per stage (0 where a stage did not run): " + ", ".join(
+                f"{k} {np.median([x['timings'].get(k, 0.0) for x in res]):.2f}" for k in stages))
+    out()
+
+
 def failure_list(rows: list[dict[str, Any]], methods: list[str], out: Tee) -> None:
     """The failed cases of each method with their motion and the other methods' errors."""
     out(f"Failed cases per method (rigid groups: TRE >= {SUCCESS_MM:g} mm; deformed: landmark error >= floor + "
@@ -476,12 +519,15 @@ def main() -> int:
                     help="pairs in DIR/<ct>/<group>_<nnn> (resumed) (default bench_out/clinical)")
     ap.add_argument("--results", type=Path, default=None, help="also write the printed text to FILE")
     ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS), choices=METHODS,
-                    help=f"methods (default {' '.join(DEFAULT_METHODS)}; also network-regression, the learned "
-                         "network alone, elastix-roi, and the peer tools ants and greedy)")
+                    help=f"methods (default {' '.join(DEFAULT_METHODS)}; also network-thorough, the thorough path, "
+                         "network-regression, the learned network alone, elastix-roi, and the peer tools ants and "
+                         "greedy)")
     ap.add_argument("--device", default="cpu", help="device of the network and the simulation (default cpu)")
     ap.add_argument("--threads", type=int, default=2, help="torch, SimpleITK and ITK/elastix threads (default 2)")
     ap.add_argument("--bundle", type=Path, default=None, help="bundle directory (default: the shipped bundle)")
     ap.add_argument("--simulate-only", action="store_true", help="build (or resume) the pairs, register nothing")
+    ap.add_argument("--native-max-voxels", type=int, default=None,
+                    help="the last level's grid at most this many voxels (default: the bundle's / the registrar's)")
     ap.add_argument("--no-native-level", action="store_true",
                     help="the network without its last level at native resolution (RigidRegistrar native_level)")
     ap.add_argument("--no-global-init", action="store_true",
@@ -530,10 +576,12 @@ def main() -> int:
         out("no CT to benchmark")
         return 2
     registrar = (RigidRegistrar.from_bundle(args.bundle, device=args.device)
-                 if {"network", "network-regression"} & set(methods) else None)
+                 if {"network", "network-thorough", "network-regression"} & set(methods) else None)
     if registrar is not None:
         registrar.native_level = not args.no_native_level
         registrar.global_init = not args.no_global_init
+        if args.native_max_voxels is not None:
+            registrar.native_max_voxels = int(args.native_max_voxels)
     all_rows: list[dict[str, Any]] = []
     run_notes: list[str] = []
     for path in cts:
@@ -609,6 +657,7 @@ def main() -> int:
         out()
         sampled_geometry(all_rows, out)
         targets(held, methods, out)
+        path_summary(all_rows, methods, out)
         failure_list(all_rows, methods, out)
 
     end_run(out, monitor, t_start, args.results, [

@@ -21,7 +21,9 @@ motion of a small pair through its own output (``monai_rigidreg.registration.pee
 Printed, per CT and over all of them: per method n, mean and median TRE (mm, over the body points the evaluation
 uses), success rate (TRE < 2 mm), the share of cases under 12 mm, the per-axis mean absolute errors, the median time
 per case (volumes in memory; the network methods include the confidence check, as ``evaluate`` runs them) and its
-ratio to elastix's; the identity (no registration) on the same cases for reference; and every failed case
+ratio to elastix's; for ``network`` and ``network-thorough`` (the thorough path, ``register(..., thorough=True)``) the
+path taken, how often the network-led path's fallback ran and why, how close the cases came to its check's limits,
+and the stage medians; the identity (no registration) on the same cases for reference; and every failed case
 (TRE >= 2 mm) per method with its motion and the other methods' TRE on it. ``--results FILE`` writes the same text
 with the command line, the date and the machine load at the top (timings are only indicative when other jobs share
 the CPU).
@@ -156,6 +158,28 @@ def summary_table(rows: list[dict], methods: list[str], out: Tee) -> None:
                          f"{sum(bool(c.extra['flagged']) for c in oks)} of {len(oks)} successes flagged")
     if flag_rows:
         out("Failure flag (confidence < 0.5): " + "; ".join(flag_rows) + ".")
+    for m in [m for m in methods if m in ("network", "network-thorough")]:
+        res = [r["results"][m] for r in rows]
+        fell = [c for c in res if (c.extra.get("fallback") or {}).get("run")]
+        reasons: dict[str, int] = {}
+        for c in fell:
+            for k in c.extra["fallback"]["reasons"]:
+                reasons[k] = reasons.get(k, 0) + 1
+        paths = [c.extra.get("path") for c in res]
+        stages = list(dict.fromkeys(k for c in res for k in c.extra.get("timings", {})))
+        out(f"{m}: paths {dict((p, paths.count(p)) for p in dict.fromkeys(paths))}; fallback ran on {len(fell)} of "
+            f"{len(res)} (reasons {reasons}); median seconds per stage (0 where it did not run): " + ", ".join(
+                f"{k} {np.median([c.extra['timings'].get(k, 0.0) for c in res]):.2f}" for k in stages))
+        checks = [c.extra["lead_check"] for c in res if c.extra.get("lead_check")]
+        if checks:  # how close the cases came to the check's limits (lead.py)
+            out(f"  check: confidence min {min(k['confidence'] for k in checks):.3f}, overlap min "
+                f"{min(k['overlap'] for k in checks):.3f}, polish max {max(k['polish_mm'] for k in checks):.2f} mm, "
+                f"translation max {max(k['max_translation_mm'] for k in checks):.1f} mm, rotation max "
+                f"{max(k['max_rotation_deg'] for k in checks):.1f} deg")
+        for r, c in ((r, r["results"][m]) for r in rows if (r["results"][m].extra.get("fallback") or {}).get("run")):
+            others = ", ".join(f"{k} {v.tre_mm:.2f}" for k, v in r["results"].items() if k != m)
+            out(f"  - fallback on {r['ct']} {r['case_id']} [{r['label']}]: {c.extra['lead_check']}; start "
+                f"{c.extra.get('start')}; TRE {c.tre_mm:.2f} mm ({others})")
 
 
 def failure_list(rows: list[dict], methods: list[str], out: Tee) -> None:
@@ -196,8 +220,8 @@ def main() -> int:
     ap.add_argument("--output-dir", type=Path, default=Path("bench_out/real_ct"),
                     help="data in DIR/<name>, evaluation outputs in DIR/eval/<name> (default bench_out/real_ct)")
     ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS),
-                    help=f"evaluation methods (default {' '.join(DEFAULT_METHODS)}; also sitk, network+refine, and "
-                         "the peer tools ants and greedy)")
+                    help=f"evaluation methods (default {' '.join(DEFAULT_METHODS)}; also network-thorough, the "
+                         "thorough path, sitk, network+refine, and the peer tools ants and greedy)")
     ap.add_argument("--device", default="cpu", help="device of the network (default cpu)")
     ap.add_argument("--bundle", type=Path, default=None,
                     help="bundle directory of the network methods (default: the shipped bundle)")

@@ -33,6 +33,7 @@ Usage::
         --results benchmarks/results/bench_speed_<date>.txt
     python -m benchmarks.speed.bench_speed ... --wait-policy ACTIVE   # libgomp's default spinning, for comparison
     python -m benchmarks.speed.bench_speed ... --spin-count 10000     # GOMP_SPINCOUNT: spin this long before sleeping
+    python -m benchmarks.speed.bench_speed ... --thorough   # also the thorough path (search and twin every time)
 """
 
 from __future__ import annotations
@@ -130,18 +131,27 @@ def tre_mm(params: np.ndarray, center: np.ndarray, record: dict, points: np.ndar
     return matrix_distance_mm(params_to_matrix(params, center), np.asarray(record["matrix"]), points)
 
 
-def in_process(registrar, ct: sitk.Image, cases: list[Path]) -> list[dict]:
-    """The default path on every case (after one warm-up call): seconds, stage seconds, TRE."""
+def in_process(registrar, ct: sitk.Image, cases: list[Path], thorough: bool | None = None) -> list[dict]:
+    """The default path (``thorough=True``: the thorough path) on every case (after one warm-up call): seconds,
+    stage seconds, TRE, the flag and whether the network-led path's fallback ran."""
     rows = []
-    monai_rigidreg.register(ct, load_case(cases[0])[1], model=registrar)  # warm-up: allocator, FFT plans, caches
+    # warm-up: allocator, FFT plans, caches
+    monai_rigidreg.register(ct, load_case(cases[0])[1], model=registrar, thorough=thorough)
     for case_dir in cases:
         record, cbct, points = load_case(case_dir)
         t = time.perf_counter()
-        r = monai_rigidreg.register(ct, cbct, model=registrar)
+        r = monai_rigidreg.register(ct, cbct, model=registrar, thorough=thorough)
         dt = time.perf_counter() - t
         rows.append({"case": case_dir.name, "time_s": dt, "stages": dict(r.timings),
-                     "tre": tre_mm(r.params, r.center, record, points), "flagged": bool(r.flagged)})
+                     "tre": tre_mm(r.params, r.center, record, points), "flagged": bool(r.flagged),
+                     "fallback": bool((r.details.get("fallback") or {}).get("run"))})
     return rows
+
+
+def stage_medians(rows: list[dict]) -> str:
+    """The median seconds of every stage over ``rows`` (0 where a stage did not run), in the order they ran."""
+    stages = list(dict.fromkeys(k for r in rows for k in r["stages"]))
+    return ", ".join(f"{k} {np.median([r['stages'].get(k, 0.0) for r in rows]):.2f}" for k in stages)
 
 
 BASELINES = {"elastix": "elastix (default rigid map, CBCT FOV mask)",
@@ -198,6 +208,8 @@ def main() -> None:
     ap.add_argument("--cli-repeats", type=int, default=3)
     ap.add_argument("--wait-policy", default=None, help="OMP_WAIT_POLICY for this run (default: the package's)")
     ap.add_argument("--spin-count", default=None, help="GOMP_SPINCOUNT for this run (default: the package's)")
+    ap.add_argument("--thorough", action="store_true",
+                    help="also time the thorough path (register(..., thorough=True)) on the same cases in section 3")
     ap.add_argument("--skip", nargs="*", default=[], choices=["startup", "cli", "load", "batch"])
     ap.add_argument("--methods", nargs="+", default=["elastix"], choices=list(BASELINES),
                     help="baselines of the in-process section beside the default path (default elastix; also sitk "
@@ -292,18 +304,22 @@ def main() -> None:
     baselines = checked_peers(list(dict.fromkeys(["elastix", *args.methods])), out)
     registrar = monai_rigidreg.RigidRegistrar.from_bundle()
     ours = in_process(registrar, ct, cases)
+    thorough = in_process(registrar, ct, cases, thorough=True) if args.thorough else None
     rows_of = {m: baseline_rows(ct, cases, m) for m in baselines}
     t_elx = float(np.median([r["time_s"] for r in rows_of["elastix"]]))
     out("| method | n | median s / case | mean TRE (mm) | median TRE (mm) | success (<2 mm) | speed-up |")
     out("|---|---|---|---|---|---|---|")
     t_ours = summarize(out, "monai-rigidreg (default path)", ours, t_elx)
+    if thorough is not None:
+        summarize(out, "monai-rigidreg (--thorough)", thorough, t_elx)
     for m in baselines:
         summarize(out, BASELINES[m], rows_of[m], None if m == "elastix" else t_elx)
-    stages = sorted({k for r in ours for k in r["stages"]}, key=lambda k: list(ours[0]["stages"]).index(k)
-                    if k in ours[0]["stages"] else 99)
-    out("\nmedian seconds per stage: " + ", ".join(
-        f"{k} {np.median([r['stages'].get(k, 0.0) for r in ours]):.2f}" for k in stages))
-    out(f"flagged: {sum(r['flagged'] for r in ours)} of {len(ours)}")
+    out("\nmedian seconds per stage (0 where a stage did not run): " + stage_medians(ours))
+    out(f"flagged: {sum(r['flagged'] for r in ours)} of {len(ours)}; network-led path's fallback ran on "
+        f"{sum(r['fallback'] for r in ours)} of {len(ours)}")
+    if thorough is not None:
+        out("--thorough, median seconds per stage: " + stage_medians(thorough))
+        out(f"--thorough flagged: {sum(r['flagged'] for r in thorough)} of {len(thorough)}")
     out(f"load average (1/5/15 min): {load_text()}")
 
     if "load" not in args.skip:

@@ -26,7 +26,8 @@ DEFAULT_BUNDLE_NAME = "cbct_ct_rigid"
 PACKAGE_DIR = Path(__file__).resolve().parents[1]
 """The installed ``monai_rigidreg`` package folder."""
 SETTING_KEYS = ("network_size", "network_spacing", "cascade_steps", "global_init", "search_starts", "native_level",
-                "native_bias_degree", "native_bias_degree_roi", "native_highpass_sigma_mm")
+                "native_bias_degree", "native_bias_degree_roi", "native_highpass_sigma_mm", "network_leads",
+                "native_max_voxels")
 
 
 def default_bundle_path() -> Path:

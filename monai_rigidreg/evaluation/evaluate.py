@@ -44,11 +44,14 @@ __all__ = ["METHODS", "evaluate_datalist", "load_datalist", "body_points", "Load
 
 logger = logging.getLogger(__name__)
 
-METHODS = ("network", "network-regression", "network+refine", "sitk", "elastix", "ants", "greedy")
-"""``network``: the shipped network (regression + fine stage); ``network-regression``: its learned regression alone
-(``register(..., fine_stage=False)``); ``network+refine``: the network then SimpleITK Mattes MI; ``sitk``, ``elastix``:
-the classical baselines from the identity; ``ants``, ``greedy``: the peer tools' rigid registrations from the
-identity (:mod:`~monai_rigidreg.registration.peers`)."""
+METHODS = ("network", "network-thorough", "network-regression", "network+refine", "sitk", "elastix", "ants",
+           "greedy")
+"""``network``: the shipped network (regression + fine stage) on the default path (network-led where the registrar's
+``network_leads``); ``network-thorough``: the same network on the thorough path (``register(..., thorough=True)``:
+the global search, further starts and the swapped-input estimate on every pair); ``network-regression``: its learned
+regression alone (``register(..., fine_stage=False)``); ``network+refine``: the network then SimpleITK Mattes MI;
+``sitk``, ``elastix``: the classical baselines from the identity; ``ants``, ``greedy``: the peer tools' rigid
+registrations from the identity (:mod:`~monai_rigidreg.registration.peers`)."""
 
 
 def load_datalist(path: str | Path, key: str | None = None) -> tuple[list[dict[str, Any]], Path]:
@@ -344,9 +347,12 @@ def _run_method(method: str, fixed: sitk.Image, moving: sitk.Image, fov: sitk.Im
     t0 = time.perf_counter()
     if method.startswith("network"):
         res = registrar(fixed, moving, refine=method == "network+refine", resample_moving=False, moving_fov=fov,
-                        assess=True, fine_stage=False if method == "network-regression" else None)
-        extra = {"confidence": res.confidence, "flagged": res.flagged,
-                 "start": getattr(res, "details", {}).get("start"),
+                        assess=True, fine_stage=False if method == "network-regression" else None,
+                        **({"thorough": True} if method == "network-thorough" else {}))
+        details = getattr(res, "details", {})
+        extra = {"confidence": res.confidence, "flagged": res.flagged, "start": details.get("start"),
+                 "path": details.get("path"), "fallback": details.get("fallback"),
+                 "lead_check": details.get("lead_check"),
                  "timings": {k: round(v, 4) for k, v in res.timings.items()}}
         return res.params, time.perf_counter() - t0, extra
     if method == "sitk":

@@ -16,7 +16,8 @@ __all__ = ["add_parser", "run"]
 
 # copies of evaluation.evaluate.METHODS and evaluation.overlays.DEFAULT_MAX_OVERLAYS (tests/evaluation check that
 # they agree): those modules import torch, and `monai-rigidreg --help` builds this parser
-METHODS = ("network", "network-regression", "network+refine", "sitk", "elastix", "ants", "greedy")
+METHODS = ("network", "network-thorough", "network-regression", "network+refine", "sitk", "elastix", "ants",
+           "greedy")
 DEFAULT_MAX_OVERLAYS = 20
 
 

@@ -52,6 +52,7 @@ def register(
     match: str = "soft",
     keep_couch: bool = False,
     allow_swapped: bool = False,
+    thorough: bool | None = None,
 ) -> RegistrationResult:
     """Rigidly register a CBCT (``moving``) to a planning CT (``fixed``).
 
@@ -93,6 +94,12 @@ def register(
             moving one's, or a CBCT's truncated cylindrical field of view,
             :func:`~monai_rigidreg.registration.inputs.swapped_reasons`): the warning stays, the result is not
             flagged for it (``details.signals.swap_allowed``).
+        thorough: ``True`` runs the thorough path: the global search beside the network on every call, the further
+            starts where they disagree and the swapped-input estimate beside the last level. ``None`` (default): the
+            registrar's ``network_leads`` (the shipped bundle: the network-led path,
+            :mod:`monai_rigidreg.registration.lead`: the network from the identity, the last level and a cheap check;
+            the search, further starts and the swapped-input estimate only as a fallback where the check fails,
+            ``details["fallback"]``). ``refine`` always takes the thorough path.
 
     Returns:
         :class:`RegistrationResult` with ``params`` (mm/deg, fixed -> moving, about the fixed image centre),
@@ -123,7 +130,7 @@ def register(
     result = registrar(fixed_img, moving_img, refine=refine, cascade_steps=cascade_steps,
                        resample_moving=resample_moving, moving_fov=moving_fov, fine_stage=fine_stage,
                        global_init=global_init, roi=roi, match=match, keep_couch=keep_couch,
-                       allow_swapped=allow_swapped)
+                       allow_swapped=allow_swapped, thorough=thorough)
     for stage in ("load", "total"):
         result.timings[stage] = result.timings.get(stage, 0.0) + t_load
     return complete_record(result, moving_img, fixed, moving, bundle=registrar.source, device=str(registrar.device))

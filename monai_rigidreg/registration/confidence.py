@@ -373,17 +373,22 @@ class ConfidenceStage:
             return None
         return weight_on_grid([state.domain], state.run.grid)[0]
 
-    def _assess(self, state: RegistrationState) -> None:
+    def _assess(self, state: RegistrationState, swap: bool = True, record: bool = True) -> dict[str, Any] | None:
         """Stage 8, with ``assess``: :meth:`_confidence`, the overlap under the final estimate
         (:meth:`~monai_rigidreg.registration.overlap.OverlapStage._overlap_report`), and the verdict
         (:func:`~monai_rigidreg.registration.calibration.verdict`): the calibrated confidence (``calibration``) and
         why the result is flagged (``details.flag_reasons``). An input whose intensities are certainly not HU
         (:func:`~monai_rigidreg.registration.inputs.not_hu`) or inputs that look swapped
         (:func:`~monai_rigidreg.registration.inputs.swapped_reasons`, unless allowed) get confidence 0 whatever the
-        signals say: they are calibrated on HU images in the right order."""
+        signals say: they are calibrated on HU images in the right order.
+
+        ``swap=False, record=False``: the cheap signals only, without the swapped-input estimate, computed whether or
+        not the call assesses and not recorded (the network-led path's check,
+        :mod:`~monai_rigidreg.registration.lead`): their ``confidence`` is the uncalibrated rule score, ``seconds``
+        the time taken. Returns the signals (``None`` where the call does not assess)."""
         options, timings, details = state.options, state.timings, state.details
-        if not options.assess:
-            return
+        if record and not options.assess:
+            return None
         t = time.perf_counter()
         # the region check looks at the ROI itself (with --match bone too: the blocks need the soft tissue around
         # the bone to match, and the box's layout of blocks)
@@ -393,11 +398,14 @@ class ConfidenceStage:
         state.params, replaced, signals = self._confidence(
             state.inputs.fixed, state.inputs.moving, state.fov_img, state.fov_t, state.run, state.params,
             state.weights, state.weight_img, roi_img, state.native, state.staged and not options.refine, details,
-            state.early_swap, self._fixed_support(state), state.domain)
+            state.early_swap, self._fixed_support(state), state.domain, swap=swap)
         if state.early_swap is not None:
             timings["swap_estimate"] = state.early_swap.seconds
         if replaced:
             state.net_params = state.params.copy()
+        if not record:
+            signals["seconds"] = time.perf_counter() - t
+            return signals
         signals["rule_score"] = signals.pop("confidence")
         overlap = self._overlap_report(state, params_to_matrix(state.params, state.run.grid.center()))
         if np.isfinite(overlap):
@@ -420,12 +428,13 @@ class ConfidenceStage:
         if state.flagged:
             logger.warning("registration flagged as a likely failure (confidence %.2f; %s): check the QC figure",
                            state.confidence, ", ".join(FLAG_REASON_TEXT[r] for r in reasons))
+        return signals
 
     def _confidence(self, fixed_img: sitk.Image, moving_img: sitk.Image, fov_img: sitk.Image, fov_t: torch.Tensor,
                     run: NetworkRun, params: np.ndarray, weights: list[sitk.Image], weight_img: sitk.Image | None,
                     roi_img: sitk.Image | None, native: bool, may_replace: bool, details: dict[str, Any],
                     early_swap: Background | None = None, fixed_support: torch.Tensor | None = None,
-                    domain: sitk.Image | None = None) -> tuple[np.ndarray, bool, dict[str, Any]]:
+                    domain: sitk.Image | None = None, swap: bool = True) -> tuple[np.ndarray, bool, dict[str, Any]]:
         """The failure signals and the confidence of ``params`` (mm/deg about ``run.grid``'s centre), with the
         swapped-input check: where the swapped estimate disagrees by more than ``SWAP_AGREE_MM``, the one whose CBCT
         field of view matches the CT better (inside the match region ``weight_img``) is trusted, and a better
@@ -433,7 +442,9 @@ class ConfidenceStage:
         ``roi_img``: the ROI's mask on the CT for the region check
         (:func:`~monai_rigidreg.registration.region_check.block_shifts`; ``None``: no ROI, no check).
         ``early_swap``: the swapped estimate started beside the last level (``_last_level``), used for the first
-        assessment (a replacement's is computed here).
+        assessment (a replacement's is computed here). ``swap=False``: the cheap signals only (edge test,
+        ``tissue_on_air``, the region check), without the swapped-input estimate (the network-led path's check,
+        :mod:`~monai_rigidreg.registration.lead`); ``swap_tre_mm`` is then NaN and does not lower the score.
         Records ``details.swap_check`` (and ``start``, ``native_level`` on a replacement). Returns ``(params,
         replaced, signals)``, ``signals["confidence"]`` included."""
         grid = run.grid
@@ -444,9 +455,11 @@ class ConfidenceStage:
             # in the frame of the winning start: its resampled CBCT and the residual of the final estimate
             to_start = invert_matrix(run.start)
             residual = matrix_to_params(to_start @ params_to_matrix(params, grid_center), grid_center)
-            signals = self.assess(run.moving_t, run.fixed_t, grid, residual, fov_t, region=region,
+            signals = self.assess(run.moving_t, run.fixed_t, grid, residual, fov_t, swap=swap, region=region,
                                   swapped=None if early_swap is None or replaced else early_swap.result,
                                   fixed_support=fixed_support)
+            if not swap:
+                break
             swapped = run.start @ params_to_matrix(signals.pop("swap_params"), grid_center)
             if not signals["swap_tre_mm"] > SWAP_AGREE_MM:
                 break

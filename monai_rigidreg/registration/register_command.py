@@ -64,6 +64,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--no-native-level", action="store_true",
                    help="skip the last Gauss-Newton steps over the whole CBCT field of view at the inputs' resolution "
                    "(on by default; docs/usage.md says what it changes)")
+    p.add_argument("--thorough", action="store_true",
+                   help="the thorough path on every pair: the global search, further starts and the swapped-input "
+                   "confidence check always (by default the network leads: its estimate, the last level and a cheap "
+                   "check, the rest only where the check fails)")
     p.add_argument("--keep-couch", action="store_true",
                    help="keep the couches in the match (by default the CT's tissue outside its body, the couch, "
                    "counts as air and carries no match weight, so the treatment couch in the CBCT meets none either: "
@@ -145,12 +149,13 @@ def _run_pairs(args: argparse.Namespace) -> int:
 
 
 def _load_registrar(args: argparse.Namespace, registrar_cls: Any) -> Any:
-    """The bundle's registrar on ``--device``, with ``--no-native-level`` applied."""
+    """The bundle's registrar on ``--device``, with ``--no-native-level`` and ``--thorough`` applied."""
     from monai_rigidreg.core.device import set_cpu_threads
 
     set_cpu_threads(args.threads)
     registrar = registrar_cls.from_bundle(args.bundle, device=args.device)
     registrar.native_level = registrar.native_level and not args.no_native_level
+    registrar.network_leads = registrar.network_leads and not args.thorough
     registrar.adapt_threads = args.threads is None  # --threads N: exactly N
     return registrar
 

@@ -24,6 +24,10 @@ here:
 8. :meth:`RigidRegistrar._assess` - the confidence (:mod:`.confidence`, :mod:`.region_check`);
 9. :meth:`RigidRegistrar._result` - the CBCT resampled, the estimate re-expressed about the CT centre.
 
+That is the thorough path (``thorough=True``, ``network_leads=False``, and every call with ``refine``). By default
+the network leads (:class:`~monai_rigidreg.registration.lead.LeadPath`): stages 4 and 6 and a cheap check; stages 3
+and 5 and stage 8's swapped-input estimate run only as the fallback where the check fails (``details["fallback"]``).
+
 >>> import SimpleITK as sitk
 >>> from monai_rigidreg.simulation.toy import blob_ct
 >>> ct = blob_ct()  # a CT-like test object in HU, 96 mm wide
@@ -74,6 +78,7 @@ from monai_rigidreg.registration.classical import register_sitk
 from monai_rigidreg.registration.confidence import LOCAL_GAIN_LIMIT, ConfidenceStage, cylindrical_fov_mask, swap_inputs
 from monai_rigidreg.registration.inputs import check_cascade_steps, read_inputs
 from monai_rigidreg.registration.last_level import refine_native
+from monai_rigidreg.registration.lead import LeadPath
 from monai_rigidreg.registration.match_region import RoiLike, match_weight, parse_roi
 from monai_rigidreg.registration.network_run import NetworkRuns
 from monai_rigidreg.registration.overlap import OverlapStage
@@ -94,7 +99,7 @@ On the clinical-geometry pairs the last level moves a converged estimate by a fe
 
 
 
-class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage):
+class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage, LeadPath):
     """A loaded network plus its preprocessing settings, reusable across many registrations.
 
     Args:
@@ -139,6 +144,16 @@ class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage):
         native_highpass_sigma_mm: the Gaussian (mm) of the last level's local-contrast feature (``None``: the fine
             stage's, 16 mm, which the network grid was tuned with; the bundle's ``native_highpass_sigma_mm`` is 4:
             at the inputs' own resolution the finer contrast aligns better).
+        network_leads: the network-led path (:mod:`monai_rigidreg.registration.lead`: the network from the identity,
+            the last level, a cheap check, and the global search, further starts and swapped-input estimate only
+            where the check fails) whenever the last level runs and ``refine`` is off; ``False``: the thorough path
+            on every call (the search beside the network, the swapped-input estimate beside the last level), as a
+            call's ``thorough=True`` asks for one call. Default ``True`` (the bundle's ``network_leads``).
+        native_max_voxels: the last level's grid holds at most this many voxels (its spacing grows by 1.25x steps from
+            the inputs' finer spacing until it does, :func:`~monai_rigidreg.registration.last_level.native_grid`).
+
+    ``lead_fallback`` (attribute, default ``True``): ``False`` records the network-led path's check without running
+    its fallback (``python -m benchmarks.accuracy.bench_lead_check`` measures the check that way).
 
     ``adapt_threads`` (attribute, default ``True``): on the CPU each call runs with torch's and SimpleITK's thread
     counts lowered by the cores other work keeps busy as it starts
@@ -166,6 +181,8 @@ class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage):
         native_bias_degree: int = 2,
         native_bias_degree_roi: int | None = None,
         native_highpass_sigma_mm: float | None = None,
+        network_leads: bool = True,
+        native_max_voxels: int = 1_500_000,
     ) -> None:
         if network_size is None or network_spacing is None:
             shipped = NetworkGridSpec.from_bundle()
@@ -222,6 +239,11 @@ class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage):
         # what the confidence means: the shipped calibration (signals -> probability), any network's (from_bundle:
         # the bundle's own where it has one); None: the uncalibrated rule score
         self.calibration = load_calibration()
+        self.network_leads = bool(network_leads)
+        if int(native_max_voxels) < 512:
+            raise InputError(f"native_max_voxels must be >= 512, got {native_max_voxels}")
+        self.native_max_voxels = int(native_max_voxels)
+        self.lead_fallback = True
 
     @property
     def network_size(self) -> tuple[int, int, int]:
@@ -256,20 +278,23 @@ class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage):
                  cascade_steps: int | None = None, resample_moving: bool = True, moving_fov: sitk.Image | None = None,
                  assess: bool = True, fine_stage: bool | None = None, global_init: bool | None = None,
                  roi: RoiLike = None, match: str = "soft", keep_couch: bool = False,
-                 allow_swapped: bool = False) -> RegistrationResult:
+                 allow_swapped: bool = False, thorough: bool | None = None) -> RegistrationResult:
         """Register ``moving`` (CBCT) to ``fixed`` (CT); see :func:`~monai_rigidreg.registration.register`
         (``fine_stage=False``: the learned regression alone, also in the confidence check's swapped-input estimate,
-        and no global search; ``None``: as the network is configured, e.g. by the bundle's ``fine_stage``)."""
+        and no global search; ``None``: as the network is configured, e.g. by the bundle's ``fine_stage``;
+        ``thorough``: the thorough path instead of the network-led one, ``None``: as ``network_leads`` says)."""
         with self._lock, fine_stage_switch(self.network, fine_stage), self._cpu_threads() as threads:
             if global_init is None:
                 global_init = self.global_init and fine_stage is not False
             if fine_stage is False:  # the learned network alone sees the inputs as they are (no couch removal)
                 keep_couch = True
+            if thorough is None:
+                thorough = not self.network_leads
             self._workers = []
             try:
                 result = self._register(fixed, moving, RegistrationOptions(
                     refine, cascade_steps, resample_moving, moving_fov, assess, bool(global_init), roi, match,
-                    keep_couch, bool(allow_swapped)))
+                    keep_couch, bool(allow_swapped), bool(thorough)))
             finally:
                 # whatever raised, no worker is left using the network after the lock and the fine-stage setting
                 # are released (a worker's own error is dropped here: the caller gets the first one raised)
@@ -302,6 +327,10 @@ class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage):
                   options: RegistrationOptions) -> RegistrationResult:
         state = self._read(fixed, moving, options)
         self._exclude_couch(state)
+        if state.native and not (options.thorough or options.refine):
+            self._lead(state)  # the network-led path: stages 3, 5 and 8's swap only as its fallback (lead.py)
+            return self._result(state)
+        state.details["path"] = "thorough"
         searching = self._start_search(state)
         self._run_identity(state)
         self._choose_start(state, searching)
@@ -379,17 +408,17 @@ class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage):
         if state.inputs.warnings:
             details.setdefault("warnings", []).extend(state.inputs.warnings)
 
-    def _last_level(self, state: RegistrationState) -> None:
+    def _last_level(self, state: RegistrationState, swap_beside: bool = True) -> None:
         """Stage 6: the last level (:meth:`_native`) from the network's estimate, where it runs. The confidence
         check's swapped-input estimate starts beside it in a worker thread: the network's many small operations
         keep about one core busy whatever the thread count, and the last level has the other. Its CT is masked by
         the field of view as the network's estimate places it; where the last level moves the estimate by more than
         :data:`EARLY_SWAP_MAX_CHANGE_MM`, that mask is stale and the twin is computed again after it, from the
-        refined estimate."""
+        refined estimate. ``swap_beside=False``: no swapped-input estimate beside it."""
         if not state.native:
             return
         run, details = state.run, state.details
-        if state.options.assess and not state.options.refine:
+        if swap_beside and state.options.assess and not state.options.refine:
             state.early_swap = self._in_background(
                 self.estimate, *swap_inputs(run.moving_t, run.fixed_t, run.grid, run.residual, state.fov_t,
                                             self._fixed_support(state)),
@@ -424,7 +453,7 @@ class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage):
             fixed_img, moving_img, matrix, fov_img, weights, highpass_sigma_mm=sigma,
             highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
             bias_degree=degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
-            secant=getattr(stage, "secant", False))
+            secant=getattr(stage, "secant", False), max_voxels=self.native_max_voxels)
         detail = {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size), "bias_degree": degree,
                   "highpass_sigma_mm": float(sigma),
                   "change_mm": round(matrix_distance_mm(refined, matrix, grid_points(grid, 8)), 3)}

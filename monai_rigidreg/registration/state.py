@@ -25,8 +25,9 @@ __all__ = ["Background", "NetworkRun", "RegistrationOptions", "RegistrationState
 
 @dataclass(frozen=True)
 class RegistrationOptions:
-    """A call's options (:func:`~monai_rigidreg.registration.register`), ``roi`` parsed and ``global_init`` and
-    ``keep_couch`` resolved against the registrar's settings and ``fine_stage``."""
+    """A call's options (:func:`~monai_rigidreg.registration.register`), ``roi`` parsed and ``global_init``,
+    ``keep_couch`` and ``thorough`` (the full path instead of the network-led one) resolved against the registrar's
+    settings and ``fine_stage``."""
 
     refine: bool
     cascade_steps: int | None
@@ -38,6 +39,7 @@ class RegistrationOptions:
     match: str
     keep_couch: bool
     allow_swapped: bool = False
+    thorough: bool = False
 
 
 @dataclass

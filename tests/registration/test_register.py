@@ -374,9 +374,10 @@ def test_a_failing_stage_leaves_no_worker_thread_running(fast_pair, shipped_regi
         m.setattr({"refine_native": registrar, "assess_estimate": confidence, "global_search": search}[broken], broken,
                   failing)
         with pytest.raises(RuntimeError, match=f"{broken} broke"):
-            shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False)
+            shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, thorough=True)
     assert not [t for t in threading.enumerate() if t.name.startswith("monai-rigidreg-")]
-    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, thorough=True,
+                            global_init=False)
     assert res.timings["swap_estimate"] > 0 and "swap_tre_mm" in res.details["signals"]
     assert res.details["swap_estimate"] == "beside the last level"
     assert _fast_pair_tre(fast_pair, res) < 2.0
@@ -398,11 +399,13 @@ def test_a_stale_early_twin_is_computed_again_after_the_last_level(fast_pair, sh
 
     monkeypatch.setattr(conf_mod, "assess_estimate", spy)
     monkeypatch.setattr(reg_mod, "EARLY_SWAP_MAX_CHANGE_MM", -1.0)  # every change counts as stale
-    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, thorough=True,
+                            global_init=False)
     assert seen == [False] and res.details["swap_estimate"] == "after the last level"
     assert "swap_estimate" not in res.timings
     monkeypatch.setattr(reg_mod, "EARLY_SWAP_MAX_CHANGE_MM", 1e9)
-    early = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    early = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, thorough=True,
+                              global_init=False)
     assert seen == [False, True] and early.details["swap_estimate"] == "beside the last level"
     # the last level moved this estimate by a fraction of a millimetre: both twins agree with it alike
     assert abs(early.details["signals"]["swap_tre_mm"] - res.details["signals"]["swap_tre_mm"]) < 0.2
@@ -488,11 +491,11 @@ def test_further_search_starts_run_only_where_the_best_one_leads_elsewhere(fast_
     import monai_rigidreg.registration.search as reg_mod
 
     fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
-    alone = shipped_registrar(fixed, moving, resample_moving=False, global_init=False, assess=False)
+    alone = shipped_registrar(fixed, moving, resample_moving=False, thorough=True, global_init=False, assess=False)
     c = Grid.from_sitk(moving).center()
     near = alone.matrix @ params_to_matrix([12.0, 0.0, 0.0, 0.0, 0.0, 0.0], c)
     monkeypatch.setattr(reg_mod, "global_search", _fake_search([near, near, near, near]))
-    res = shipped_registrar(fixed, moving, resample_moving=False, assess=False)
+    res = shipped_registrar(fixed, moving, resample_moving=False, thorough=True, assess=False)
     search = res.details["global_search"]
     assert search["distance_to_identity_start_mm"] > reg_mod.SEARCH_AGREE_MM
     assert search["best_start_to_identity_estimate_mm"] < reg_mod.SAME_POSE_MM
@@ -510,7 +513,7 @@ def test_further_search_starts_run_only_where_the_best_one_leads_elsewhere(fast_
         return runs
 
     monkeypatch.setattr(shipped_registrar, "_runs_from", first_run_elsewhere)
-    res = shipped_registrar(fixed, moving, resample_moving=False, assess=False)
+    res = shipped_registrar(fixed, moving, resample_moving=False, thorough=True, assess=False)
     search = res.details["global_search"]
     assert calls == [1, 1, 3]  # the identity's run, the best candidate's, the other three in one batch
     assert search["best_start_to_identity_estimate_mm"] > reg_mod.SAME_POSE_MM
@@ -539,7 +542,7 @@ def test_the_global_search_runs_beside_the_network_and_its_errors_reach_the_call
         return real(*args, **kwargs)
 
     monkeypatch.setattr(reg_mod, "global_search", recording)
-    res = shipped_registrar(fixed, moving, resample_moving=False, assess=False)
+    res = shipped_registrar(fixed, moving, resample_moving=False, thorough=True, assess=False)
     assert threads == ["monai-rigidreg-search"]
     body = shipped_registrar._bodies(fixed)
     direct = global_search(fixed, moving, cylindrical_fov_mask(moving), hu_range=shipped_registrar.hu_range,
@@ -552,7 +555,7 @@ def test_the_global_search_runs_beside_the_network_and_its_errors_reach_the_call
 
     monkeypatch.setattr(reg_mod, "global_search", failing)
     with pytest.raises(MemoryError, match="search out of memory"):
-        shipped_registrar(fixed, moving, resample_moving=False, assess=False)
+        shipped_registrar(fixed, moving, resample_moving=False, thorough=True, assess=False)
 
 
 def test_a_better_swapped_estimate_replaces_a_wrong_one(fast_pair, shipped_registrar, monkeypatch):
@@ -563,7 +566,8 @@ def test_a_better_swapped_estimate_replaces_a_wrong_one(fast_pair, shipped_regis
 
     spoiled_once, calls = _last_level_spoiled_once(reg_mod.refine_native)
     monkeypatch.setattr(reg_mod, "refine_native", spoiled_once)
-    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, thorough=True,
+                            global_init=False)
     assert len(calls) == 2  # the spoiled estimate, then the swapped one's last level
     # details.native_level describes the swapped estimate's own last level (a small correction), not the spoiled one
     assert res.details["native_level"]["change_mm"] < 5.0
@@ -590,7 +594,8 @@ def test_a_worse_swapped_estimate_does_not_count_against_a_right_one(fast_pair, 
         return real(moving_t, fixed_t, grid, params, fov, spoiled, swapped=lambda: swapped() + offset, **kwargs)
 
     monkeypatch.setattr("monai_rigidreg.registration.confidence.assess_estimate", wrong_swap)
-    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, thorough=True,
+                            global_init=False)
     check = res.details["swap_check"]
     assert not check["replaced"] and check["swap_tre_mm"] > 10.0 and check["swapped_ncc"] < check["estimate_ncc"]
     assert res.details["signals"]["swap_counted"] is False and res.details["start"] == "identity"
@@ -623,7 +628,8 @@ def test_a_replacing_twin_that_disagrees_with_its_own_twin_is_flagged(fast_pair,
 
     monkeypatch.setattr(reg_mod, "refine_native", spoiled_once)
     monkeypatch.setattr(conf_mod, "assess_estimate", wrong_second_swap)
-    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, global_init=False)
+    res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, thorough=True,
+                            global_init=False)
     check = res.details["swap_check"]
     assert check["replaced"] and res.details["start"] == "swapped" and len(assess_calls) == 2
     after = check["after_replacement"]

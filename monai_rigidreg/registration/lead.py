@@ -1,0 +1,179 @@
+"""The network-led default path: one network estimate, its polish, a cheap check; the rest only as a fallback.
+
+Every registration of the thorough path (``thorough=True``, the default before 0.5.0) pays for the global search,
+a second start where the search and the network disagree and a second whole network estimate with the inputs
+swapped for the confidence. On most pairs none of them changes the result: the network from the identity is right
+and the last level polishes it. :class:`LeadPath` (a stage group of
+:class:`~monai_rigidreg.registration.RigidRegistrar`) runs, in order:
+
+1. the network from the identity (``_run_identity``, :mod:`~monai_rigidreg.registration.network_run`);
+2. the last level from its estimate (``_last_level``, :mod:`~monai_rigidreg.registration.last_level`), with the
+   swapped-input estimate beside it (in a worker thread, as on the thorough path: the calibrated confidence,
+   :mod:`~monai_rigidreg.registration.calibration`, was fitted with it);
+3. the check (:meth:`LeadPath._lead_check`): the confidence's cheap signals (the edge test, ``tissue_on_air`` and,
+   with ``--roi``, the region's block check; :func:`~monai_rigidreg.registration.confidence.confidence_score`
+   without the swap term), the share of the CBCT's field of view that the estimate places inside the CT
+   (:func:`fov_overlap`), how far the last level moved the network's estimate, and whether the estimate lies inside
+   the motion range the network was trained on;
+4. only where the check fails, the fallback (:meth:`LeadPath._fallback`): the global search and the network from
+   its candidates (:class:`~monai_rigidreg.registration.search.StartChoice`, the winner by image match), the last
+   level again if another start won, and the full confidence with the swapped-input estimate (which may replace the
+   estimate, :data:`~monai_rigidreg.registration.confidence.SWAP_AGREE_MM`).
+
+``details["path"]`` says which path ran (``"network-led"`` or ``"thorough"``), ``details["lead_check"]`` holds the
+check's numbers and ``details["fallback"]`` whether the fallback ran and why (``reasons``: ``"confidence"``,
+``"overlap"``, ``"polish"``, ``"range"``). Without the fallback the result's confidence is the full, calibrated one
+(stage 8, :meth:`~monai_rigidreg.registration.confidence.ConfidenceStage._assess`, with the swapped-input estimate
+made beside the last level), as on the thorough path. The thresholds below were measured with ``python -m
+benchmarks.accuracy.bench_lead_check`` (``docs/results.md``, "The network leads").
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import SimpleITK as sitk
+
+from monai_rigidreg.core.geometry import Grid, invert_matrix, params_to_matrix, transform_points
+
+if TYPE_CHECKING:
+    from monai_rigidreg.registration.state import Background, RegistrationState
+
+__all__ = ["LEAD_CONFIDENCE", "LEAD_MIN_OVERLAP", "LEAD_POLISH_MAX_MM", "LEAD_RANGE_MM", "LEAD_RANGE_DEG",
+           "fov_overlap", "LeadPath"]
+
+LEAD_CONFIDENCE = 0.8
+"""The check fails where the cheap signals' score (:func:`~monai_rigidreg.registration.confidence.confidence_score`
+without the swap term) is below this: a margin above the flag's 0.5, so that an estimate near a flag gets the
+search and the swapped-input estimate."""
+LEAD_MIN_OVERLAP = 0.8
+"""The check fails where less than this share of the CBCT's field of view lies inside the CT under the estimate
+(:func:`fov_overlap`): with poor overlap the network sees little of the CT and the signals less still."""
+LEAD_POLISH_MAX_MM = 2.0
+"""The check fails where the last level moved the network's estimate by more than this (mm, mean over the network
+grid's points, ``details.native_level.change_mm``): a converged network estimate is polished by a few tenths of a
+millimetre; a larger move says the network was not at the images' optimum."""
+LEAD_RANGE_MM = 30.0
+"""The check fails where the estimate translates the CBCT's centre by more than this along any axis (mm): the
+shipped network was trained on motions up to 30 mm per axis (``translate_range`` of ``train.json``); beyond it the
+truth may lie outside its capture range and the estimate be a near miss."""
+LEAD_RANGE_DEG = 30.0
+"""Likewise for the rotation angles (degrees, ``rotate_range`` of ``train.json``)."""
+
+
+def fov_overlap(fixed: sitk.Image, moving: sitk.Image, fov: sitk.Image, matrix: np.ndarray,
+                step_mm: float = 8.0) -> float:
+    """Share of the CBCT's field of view that the fixed -> moving ``matrix`` (4x4, LPS mm) places inside the CT.
+
+    Args:
+        fixed: the CT (its voxel box is where it has data).
+        moving: the CBCT.
+        fov: the CBCT's field-of-view mask on the CBCT's grid (> 0 inside).
+        matrix: the estimate, fixed (CT) -> moving (CBCT).
+        step_mm: the field of view's voxels are taken about every ``step_mm`` along each axis.
+
+    Returns the share in [0, 1] of those voxels whose CT position (``matrix``'s inverse) lies inside the CT's voxel
+    box (within half a voxel of its outer voxel centres); NaN when the field of view is empty.
+    """
+    arr = sitk.GetArrayViewFromImage(fov)  # [z, y, x]
+    spacing = np.asarray(fov.GetSpacing(), dtype=np.float64)
+    stride = [max(1, int(round(step_mm / s))) for s in spacing]
+    sub = arr[:: stride[2], :: stride[1], :: stride[0]]
+    zyx = np.argwhere(sub > 0)
+    if len(zyx) == 0:
+        return float("nan")
+    idx = zyx[:, ::-1] * np.asarray(stride)  # [n, 3] (x, y, z) voxel indices of the CBCT
+    to_phys = Grid.from_sitk(fov).index_to_physical()
+    cbct_pts = transform_points(to_phys, idx.astype(np.float64))
+    ct_pts = transform_points(invert_matrix(matrix), cbct_pts)
+    ct_idx = transform_points(np.linalg.inv(Grid.from_sitk(fixed).index_to_physical()), ct_pts)
+    size = np.asarray(fixed.GetSize(), dtype=np.float64)
+    inside = np.all((ct_idx >= -0.5) & (ct_idx <= size - 0.5), axis=1)
+    return float(inside.mean())
+
+
+class LeadPath:
+    """The network-led path of :class:`~monai_rigidreg.registration.RigidRegistrar` (the module's doc): for a class
+    with the registrar's stage methods and its ``lead_fallback`` setting (``False``: the check is recorded but the
+    fallback never runs, for measuring the check itself)."""
+
+    lead_fallback: bool
+    _run_identity: Any
+    _choose_start: Any
+    _last_level: Any
+    _start_search: Any
+    _assess: Any
+    _on_grid: Any
+    _in_background: Any
+    estimate: Any
+
+    def _lead(self, state: RegistrationState) -> None:
+        """Stages 4 and 6 without the search, the check, and the fallback where the check fails."""
+        state.details["path"] = "network-led"
+        self._run_identity(state)
+        self._choose_start(state, None)  # no search: the identity's run is the estimate
+        if state.fov_t is None:  # the check needs the field of view on the grid, with or without ``assess``
+            state.fov_t = self._on_grid(state.fov_img, state.run.grid, "nearest", 0.0, state.run.sampling)[0]
+        # the swapped-input estimate beside the last level, as on the thorough path: the calibrated confidence
+        # (registration.calibration) was fitted with it, so a result without a fallback is scored as any other
+        self._last_level(state)
+        self._lead_check(state)
+        check = state.details["lead_check"]
+        run_fallback = bool(check["reasons"]) and self.lead_fallback
+        state.details["fallback"] = {"run": run_fallback, "reasons": list(check["reasons"])}
+        if run_fallback:
+            self._fallback(state)
+        else:
+            self._assess(state)
+
+    def _lead_check(self, state: RegistrationState) -> dict[str, Any]:
+        """The check of the network's polished estimate (the module's doc, step 3): records
+        ``details["lead_check"]`` (``confidence``: the cheap signals' score, ``overlap``, ``polish_mm``,
+        ``max_translation_mm`` and ``max_rotation_deg`` of the estimate about the CBCT's centre, ``reasons``: the
+        tests it failed) and ``timings["lead_check"]``; returns the cheap signals (:meth:`_assess`'s)."""
+        t = time.perf_counter()
+        signals = self._assess(state, swap=False, record=False)
+        grid_center = state.run.grid.center()
+        matrix = params_to_matrix(state.params, grid_center)
+        overlap = fov_overlap(state.inputs.fixed, state.inputs.moving, state.fov_img, matrix)
+        polish = float(state.details.get("native_level", {}).get("change_mm", 0.0))
+        # the estimate about the CBCT's centre (the identity's grid is centred there): the motion the network saw
+        params = np.asarray(state.params, dtype=np.float64)
+        max_t, max_r = float(np.abs(params[:3]).max()), float(np.abs(params[3:]).max())
+        reasons = []
+        if not signals["confidence"] >= LEAD_CONFIDENCE:
+            reasons.append("confidence")
+        if not overlap >= LEAD_MIN_OVERLAP:
+            reasons.append("overlap")
+        if polish > LEAD_POLISH_MAX_MM:
+            reasons.append("polish")
+        if max_t > LEAD_RANGE_MM or max_r > LEAD_RANGE_DEG:
+            reasons.append("range")
+        state.details["lead_check"] = {
+            "confidence": round(float(signals["confidence"]), 4), "local_gain": round(signals["local_gain"], 5),
+            "tissue_on_air": round(signals["tissue_on_air"], 4), "overlap": round(overlap, 4),
+            "polish_mm": round(polish, 3), "max_translation_mm": round(max_t, 2), "max_rotation_deg": round(max_r, 2),
+            "reasons": reasons}
+        state.timings["lead_check"] = time.perf_counter() - t
+        return signals
+
+    def _fallback(self, state: RegistrationState) -> None:
+        """The thorough path's remaining stages from the network's run: the global search (with ``global_init``)
+        and the network from its candidates, the choice by image match (:meth:`_choose_start`), the last level
+        again where a candidate won (with its own swapped-input estimate beside it), and the full confidence. Where the
+        identity's run stays the start, the swapped-input estimate made beside its last level serves."""
+        t = time.perf_counter()
+        polished = state.params.copy()
+        searching: Background | None = self._start_search(state)
+        if searching is not None:
+            self._choose_start(state, searching)
+        if state.details.get("start", "identity") == "identity":
+            # the identity's run, already polished; its swapped-input estimate was made beside its last level
+            state.params, state.net_params = polished, polished.copy()
+        else:
+            state.early_swap = None  # another start won: its own twin starts beside its last level
+            self._last_level(state)
+        self._assess(state)
+        state.timings["fallback"] = time.perf_counter() - t

@@ -1,0 +1,164 @@
+"""The network-led default path (``registration/lead.py``): no search where the network's polished estimate passes
+the check, the fallback (search, further starts) where it does not, and what ``details`` records either way."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from conftest import KNOWN_MOTION, synth_ct
+
+from monai_rigidreg.core.geometry import (
+    Grid,
+    matrix_to_sitk,
+    params_to_matrix,
+    recenter_params,
+    target_registration_error,
+)
+from monai_rigidreg.evaluation.evaluate import body_points
+from monai_rigidreg.io.volumes import load_volume
+from monai_rigidreg.registration import RigidRegistrar
+from monai_rigidreg.registration.lead import (
+    LEAD_CONFIDENCE,
+    LEAD_MIN_OVERLAP,
+    LEAD_POLISH_MAX_MM,
+    LEAD_RANGE_DEG,
+    LEAD_RANGE_MM,
+    fov_overlap,
+)
+
+ISO = np.array([20.0, -10.0, 15.0])
+"""The CBCT isocentre of the large-motion pair, mm from the CT centre (the origin)."""
+
+
+@pytest.fixture(scope="module")
+def registrar() -> RigidRegistrar:
+    return RigidRegistrar.from_bundle(device="cpu")
+
+
+def test_an_easy_pair_takes_the_network_led_path_without_search_or_twin(fast_pair, registrar):
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    res = registrar(fixed, moving, resample_moving=False)
+    assert res.details["path"] == "network-led"
+    assert res.details["fallback"] == {"run": False, "reasons": []}
+    check = res.details["lead_check"]
+    assert check["confidence"] >= LEAD_CONFIDENCE and check["overlap"] >= LEAD_MIN_OVERLAP
+    assert check["polish_mm"] <= LEAD_POLISH_MAX_MM
+    assert check["max_translation_mm"] <= LEAD_RANGE_MM and check["max_rotation_deg"] <= LEAD_RANGE_DEG
+    # the search did not run; the swapped-input estimate ran beside the last level and agrees, and the confidence
+    # is the full, calibrated one (the same signals and model as the thorough path's)
+    for stage in ("global_search", "fallback", "second_start"):
+        assert stage not in res.timings
+    assert "global_search" not in res.details and res.timings["swap_estimate"] > 0
+    assert res.details["signals"]["swap_tre_mm"] < 1.0
+    assert 0.0 <= res.confidence <= 1.0 and not res.flagged and res.details["flag_reasons"] == []
+    points = body_points(fixed)
+    tre = target_registration_error(res.params, KNOWN_MOTION, points, center=res.center)
+    assert tre < 1.0
+    # the thorough path on the same pair: the search and the twin ran, and the estimate is the same one (the same
+    # network run and last level; the twin agreed and replaced nothing)
+    thorough = registrar(fixed, moving, resample_moving=False, thorough=True)
+    assert thorough.details["path"] == "thorough" and "fallback" not in thorough.details
+    assert "global_search" in thorough.timings and np.isfinite(thorough.details["signals"]["swap_tre_mm"])
+    assert target_registration_error(res.params, thorough.params, points, center=res.center) < 0.01
+    assert res.confidence == pytest.approx(thorough.confidence, abs=0.02)
+
+
+def _moved_cbct(ct: sitk.Image, matrix: np.ndarray, seed: int) -> sitk.Image:
+    """A CBCT-like image, 64^3 at 2 mm centred on :data:`ISO`: ``CBCT(y) = CT(T^-1 y)`` plus noise and shading."""
+    grid = Grid.centered((64, 64, 64), (2.0, 2.0, 2.0), ISO)
+    cb = sitk.Resample(ct, grid.to_sitk(), matrix_to_sitk(np.linalg.inv(matrix)), sitk.sitkLinear, -1000.0)
+    arr = sitk.GetArrayFromImage(cb)
+    rng = np.random.default_rng(seed)
+    arr = arr + 30.0 * rng.standard_normal(arr.shape) + 40.0 * np.linspace(-1, 1, arr.shape[0])[:, None, None]
+    out = sitk.GetImageFromArray(arr.astype(np.float32))
+    out.CopyInformation(cb)
+    return out
+
+
+def test_a_motion_beyond_the_networks_reach_fails_the_check_and_the_fallback_recovers_it(registrar):
+    ct = synth_ct(Grid.centered((96, 96, 96), (3.0, 3.0, 3.0)), 11)
+    truth = [38.0, -36.0, 28.0, 0.0, 0.0, 40.0]  # 60 mm and 40 degrees about the isocentre
+    cbct = _moved_cbct(ct, params_to_matrix(truth, ISO), seed=2)
+    axes = [np.linspace(a, b, 5) for a, b in zip(ISO - 40, ISO + 40)]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+    def tre(res) -> float:
+        return target_registration_error(res.params, recenter_params(truth, ISO, res.center), points,
+                                         center=res.center)
+
+    # the check alone (lead_fallback off): the network's estimate is wrong and the check says so
+    registrar.lead_fallback = False
+    try:
+        alone = registrar(ct, cbct, resample_moving=False)
+    finally:
+        registrar.lead_fallback = True
+    assert tre(alone) > 10.0
+    reasons = alone.details["lead_check"]["reasons"]
+    assert reasons and alone.details["fallback"] == {"run": False, "reasons": reasons}
+    # the default: the fallback runs for the same reasons, the search's start wins, and the result is right
+    res = registrar(ct, cbct, resample_moving=False)
+    assert res.details["path"] == "network-led"
+    assert res.details["fallback"] == {"run": True, "reasons": reasons}
+    assert res.details["start"] == "search" and "global_search" in res.details
+    assert res.timings["fallback"] > 0 and "global_search" in res.timings
+    assert np.isfinite(res.details["signals"]["swap_tre_mm"])  # the full confidence, with the twin
+    assert tre(res) < 1.0 and not res.flagged
+
+
+def _box(size: int, spacing: float) -> sitk.Image:
+    img = sitk.Image([size] * 3, sitk.sitkFloat32)
+    img.SetSpacing([spacing] * 3)
+    img.SetOrigin([-(size - 1) * spacing / 2.0] * 3)
+    return img
+
+
+def test_fov_overlap_is_the_share_of_the_field_of_view_inside_the_ct():
+    ct = _box(40, 2.0)  # voxel centres -39..39 mm: data within [-40, 40] mm
+    cbct = _box(20, 2.0)  # voxel centres -19..19 mm
+    fov = sitk.Cast(cbct, sitk.sitkUInt8) + 1
+    assert fov_overlap(ct, cbct, fov, np.eye(4), step_mm=2.0) == 1.0
+    # T(x) = x - 40 mm along x: the CBCT's voxel at y sits at CT x = y + 40, inside for y <= 0 only (half of them)
+    shift = params_to_matrix([-40.0, 0.0, 0.0, 0.0, 0.0, 0.0], np.zeros(3))
+    assert fov_overlap(ct, cbct, fov, shift, step_mm=2.0) == pytest.approx(0.5)
+    # an empty field of view has no overlap to measure
+    assert np.isnan(fov_overlap(ct, cbct, fov * 0, np.eye(4)))
+
+
+def test_a_fallback_that_finds_no_better_start_keeps_the_polished_estimate(fast_pair, registrar, monkeypatch):
+    """With the trained range set below any motion, the easy pair fails the check on ``range`` alone: the search
+    runs and agrees with the network, the twin (made beside the last level) agrees too, and the estimate is the
+    polished one the check saw."""
+    import monai_rigidreg.registration.lead as lead_mod
+
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    plain = registrar(fixed, moving, resample_moving=False)
+    monkeypatch.setattr(lead_mod, "LEAD_RANGE_MM", 0.0)
+    res = registrar(fixed, moving, resample_moving=False)
+    assert res.details["fallback"] == {"run": True, "reasons": ["range"]}
+    assert res.details["start"] == "identity"
+    assert "global_search" in res.details and res.timings["swap_estimate"] > 0
+    np.testing.assert_allclose(res.params, plain.params, atol=1e-9)
+    assert np.isfinite(res.details["signals"]["swap_tre_mm"]) and res.details["signals"]["swap_tre_mm"] < 3.0
+    assert not res.flagged
+
+
+def test_register_thorough_takes_the_thorough_path_from_python_and_the_command_line(fast_pair, registrar, tmp_path):
+    import json
+
+    from monai_rigidreg import register
+    from monai_rigidreg.cli import main
+
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    res = register(fixed, moving, model=registrar, resample_moving=False, thorough=True)
+    assert res.details["path"] == "thorough" and "lead_check" not in res.details
+    out = tmp_path / "out"
+    assert main(["register", "--fixed", str(fast_pair["fixed"]), "--moving", str(fast_pair["moving"]),
+                 "--output-dir", str(out), "--no-qc", "--thorough", "--device", "cpu"]) == 0
+    details = json.loads((out / "result.json").read_text())["details"]
+    assert details["path"] == "thorough" and "global_search" in details
+    default = tmp_path / "default"
+    assert main(["register", "--fixed", str(fast_pair["fixed"]), "--moving", str(fast_pair["moving"]),
+                 "--output-dir", str(default), "--no-qc", "--device", "cpu"]) == 0
+    details = json.loads((default / "result.json").read_text())["details"]
+    assert details["path"] == "network-led" and details["fallback"]["run"] is False
