@@ -72,16 +72,21 @@ def _misses(matrix_lps: np.ndarray, center: np.ndarray) -> float:
     return float(parameter_errors(matrix_to_params(matrix_lps, center), KNOWN_MOTION).max())
 
 
+def _native_reading(tool: str) -> tuple[np.ndarray, np.ndarray]:
+    """A peer tool's output on the known-motion pair after its convention check passed: its native 4x4 and the
+    rotation centre (mm)."""
+    check = check_convention(tool)
+    assert check["ok"], check["errors"]
+    res = check["result"]
+    assert res.extra["native_space"] == {"greedy": "RAS", "ants": "LPS"}[tool]
+    return np.asarray(res.extra["native_matrix"]), res.center
+
+
 @pytest.mark.skipif(not greedy_available(), reason=NO_GREEDY)
 def test_greedy_convention_on_a_known_motion():
     """greedy's matrix is RAS, fixed -> moving: F Q F recovers the motion; Q read as LPS, its inverse, or the x and y
     axes swapped miss it by degrees or millimetres."""
-    check = check_convention("greedy")
-    assert check["ok"], check["errors"]
-    res = check["result"]
-    assert res.extra["native_space"] == "RAS"
-    q = np.asarray(res.extra["native_matrix"])
-    c = res.center
+    q, c = _native_reading("greedy")
     assert _misses(ras_to_lps_transform(q), c) <= CONVENTION_TOLERANCE[1]
     assert _misses(q, c) > 3.0  # RAS read as LPS: tx, ty, rx, ry flip sign
     assert _misses(np.linalg.inv(ras_to_lps_transform(q)), c) > 3.0  # moving -> fixed
@@ -92,16 +97,11 @@ def test_greedy_convention_on_a_known_motion():
 def test_ants_convention_on_a_known_motion():
     """ANTs' GenericAffine.mat is LPS, fixed -> moving, read as it is: it recovers the motion; read as RAS, inverted,
     or with x and y swapped, it misses by degrees or millimetres."""
-    check = check_convention("ants")
-    assert check["ok"], check["errors"]
-    res = check["result"]
-    assert res.extra["native_space"] == "LPS"
-    a = np.asarray(res.extra["native_matrix"])
-    c = res.center
+    a, c = _native_reading("ants")
     assert _misses(a, c) <= CONVENTION_TOLERANCE[1] + 1e-6
-    assert _misses(LPS_TO_RAS @ a @ LPS_TO_RAS, c) > 3.0
-    assert _misses(np.linalg.inv(a), c) > 3.0
-    assert _misses(SWAP_XY @ a @ SWAP_XY, c) > 3.0
+    assert _misses(LPS_TO_RAS @ a @ LPS_TO_RAS, c) > 3.0  # LPS read as RAS
+    assert _misses(np.linalg.inv(a), c) > 3.0  # moving -> fixed
+    assert _misses(SWAP_XY @ a @ SWAP_XY, c) > 3.0  # x and y transposed
 
 
 @pytest.mark.skipif(not greedy_available(), reason=NO_GREEDY)
