@@ -1,17 +1,15 @@
 """How much to trust a registration: the CBCT field-of-view mask, the failure signals and the confidence score.
 
-A result is *flagged* (a likely failure: check the QC figure) when :func:`confidence_score` falls below
-:data:`CONFIDENCE_THRESHOLD`. The score combines three signals computed by :func:`assess_estimate` on the
-network-grid tensors: whether a small perturbation of the estimate aligns edges better (a correct estimate sits at
-the optimum; with a match region, e.g. ``--roi``, the edges inside it only), whether the estimate with the inputs
-swapped agrees with the inverse of this one, and how much of the CT's tissue it puts on CBCT air
-(:func:`tissue_on_air`: a gross failure, wherever its edge optimum lies); with ``--roi`` a fourth, computed on the
-images by the registrar: how far the estimate leaves the region's structures from where the CBCT shows them
-(:mod:`monai_rigidreg.registration.region_check`). The first two are calibrated on simulated
-pairs with deliberately spoiled estimates (``benchmarks/confidence/bench_confidence.py``), the third on the
-clinical-geometry pairs (``benchmarks/confidence/bench_confidence_clinical.py --spoil``), the fourth on the
-clinical-geometry deformed pairs (``bench_confidence_clinical.py --groups deformed``); ``tests/test_register.py`` pins
-that clearly wrong estimates are flagged and right ones are not.
+The rule score (:func:`confidence_score`) and the calibrated confidence
+(:mod:`~monai_rigidreg.registration.calibration`) combine signals computed by :func:`assess_estimate` on the grids:
+whether a small perturbation of the estimate aligns edges better (a correct estimate sits at the optimum; with a match
+region, e.g. ``--roi``, the edges inside it only), whether the estimate with the inputs swapped agrees with the inverse
+of this one, and how much of the CT's tissue it puts on CBCT air (:func:`tissue_on_air`: a gross failure, wherever its
+edge optimum lies); with ``--roi`` a fourth, computed on the images by the registrar: how far the estimate leaves the
+region's structures from where the CBCT shows them (:mod:`monai_rigidreg.registration.region_check`). The first two are
+calibrated on simulated pairs with deliberately spoiled estimates (``benchmarks/confidence/bench_confidence.py``), the
+third on the clinical-geometry pairs (``benchmarks/confidence/bench_confidence_clinical.py --spoil``), the fourth on the
+clinical-geometry deformed pairs (``bench_confidence_clinical.py --groups deformed``).
 
 A disagreement with the swapped-input estimate does not say which of the two is wrong. Above
 :data:`SWAP_AGREE_MM` the registrar scores both on the images, as it chooses between its starts, and trusts the
@@ -345,12 +343,13 @@ def assess_estimate(
 class ConfidenceStage:
     """Stage 8 of :class:`~monai_rigidreg.registration.RigidRegistrar`: the failure signals, the swapped-input check
     (which may replace the estimate by its better twin) and the confidence. For a class with the registrar's
-    ``hu_range``, ``estimate``, ``_image_match`` and ``_native``."""
+    ``hu_range``, ``estimate``, ``_image_match``, ``_native`` and ``_fixed_support`` (the overlap stage's)."""
 
     hu_range: tuple[float, float]
     estimate: Callable[..., np.ndarray]
     _image_match: Callable[..., list[float]]
     _native: Callable[..., tuple[np.ndarray, dict[str, Any]]]
+    _fixed_support: Callable[..., torch.Tensor | None]
 
     def assess(
         self, moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, params: np.ndarray, fov: torch.Tensor,
@@ -365,27 +364,12 @@ class ConfidenceStage:
         return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate, region=region, hu_range=self.hu_range,
                                swapped=swapped if swap else None, fixed_support=fixed_support)
 
-    @staticmethod
-    def _fixed_support(state: RegistrationState) -> torch.Tensor | None:
-        """Where the CT has data on the winning run's grid (``[x, y, z]``), where the match is restricted to the CT's
-        box (``state.domain``); ``None`` elsewhere."""
-        if state.domain is None:
-            return None
-        return weight_on_grid([state.domain], state.run.grid)[0]
-
     def _assess(self, state: RegistrationState, swap: bool = True, record: bool = True) -> dict[str, Any] | None:
-        """Stage 8, with ``assess``: :meth:`_confidence`, the overlap under the final estimate
-        (:meth:`~monai_rigidreg.registration.overlap.OverlapStage._overlap_report`), and the verdict
-        (:func:`~monai_rigidreg.registration.calibration.verdict`): the calibrated confidence (``calibration``) and
-        why the result is flagged (``details.flag_reasons``). An input whose intensities are certainly not HU
-        (:func:`~monai_rigidreg.registration.inputs.not_hu`) or inputs that look swapped
-        (:func:`~monai_rigidreg.registration.inputs.swapped_reasons`, unless allowed) get confidence 0 whatever the
-        signals say: they are calibrated on HU images in the right order.
-
-        ``swap=False, record=False``: the cheap signals only, without the swapped-input estimate, computed whether or
-        not the call assesses and not recorded (the network-led path's check,
-        :mod:`~monai_rigidreg.registration.lead`): their ``confidence`` is the uncalibrated rule score, ``seconds``
-        the time taken. Returns the signals (``None`` where the call does not assess)."""
+        """Stage 8, with ``assess``: :meth:`_confidence`, the overlap under the final estimate (``_overlap_report``)
+        and the verdict (:func:`~monai_rigidreg.registration.calibration.verdict`): the calibrated confidence and
+        ``details.flag_reasons``; inputs not in HU or that look swapped (unless allowed) get confidence 0.
+        ``swap=False, record=False``: the cheap signals only, not recorded (the network-led path's check): their
+        ``confidence`` is the uncalibrated rule score. Returns the signals (``None`` where the call does not assess)."""
         options, timings, details = state.options, state.timings, state.details
         if record and not options.assess:
             return None
@@ -398,7 +382,7 @@ class ConfidenceStage:
         state.params, replaced, signals = self._confidence(
             state.inputs.fixed, state.inputs.moving, state.fov_img, state.fov_t, state.run, state.params,
             state.weights, state.weight_img, roi_img, state.native, state.staged and not options.refine, details,
-            state.early_swap, self._fixed_support(state), state.domain, swap=swap)
+            state.early_swap, self._fixed_support(state), state.domain, swap=swap, blocks_cache=state.region_blocks)
         if state.early_swap is not None:
             timings["swap_estimate"] = state.early_swap.seconds
         if replaced:
@@ -434,7 +418,8 @@ class ConfidenceStage:
                     run: NetworkRun, params: np.ndarray, weights: list[sitk.Image], weight_img: sitk.Image | None,
                     roi_img: sitk.Image | None, native: bool, may_replace: bool, details: dict[str, Any],
                     early_swap: Background | None = None, fixed_support: torch.Tensor | None = None,
-                    domain: sitk.Image | None = None, swap: bool = True) -> tuple[np.ndarray, bool, dict[str, Any]]:
+                    domain: sitk.Image | None = None, swap: bool = True, blocks_cache: dict[bytes, Any] | None = None
+                    ) -> tuple[np.ndarray, bool, dict[str, Any]]:
         """The failure signals and the confidence of ``params`` (mm/deg about ``run.grid``'s centre), with the
         swapped-input check: where the swapped estimate disagrees by more than ``SWAP_AGREE_MM``, the one whose CBCT
         field of view matches the CT better (inside the match region ``weight_img``) is trusted, and a better
@@ -445,8 +430,9 @@ class ConfidenceStage:
         assessment (a replacement's is computed here). ``swap=False``: the cheap signals only (edge test,
         ``tissue_on_air``, the region check), without the swapped-input estimate (the network-led path's check,
         :mod:`~monai_rigidreg.registration.lead`); ``swap_tre_mm`` is then NaN and does not lower the score.
-        Records ``details.swap_check`` (and ``start``, ``native_level`` on a replacement). Returns ``(params,
-        replaced, signals)``, ``signals["confidence"]`` included."""
+        ``blocks_cache``: the region check per estimate, filled and reused (one call judges an estimate twice on the
+        network-led path). Records ``details.swap_check`` (and ``start``, ``native_level`` on a replacement).
+        Returns ``(params, replaced, signals)``, ``signals["confidence"]`` included."""
         grid = run.grid
         grid_center = grid.center()
         region = None if weight_img is None else weight_on_grid([weight_img], grid)[0]
@@ -497,7 +483,12 @@ class ConfidenceStage:
         if roi_img is not None:
             # the region's structures against the CBCT (block matching): on flat or deformed anatomy an image optimum
             # can leave them millimetres off while every other signal reads well
-            blocks = block_shifts(fixed_img, moving_img, params_to_matrix(params, grid_center), roi_img, fov_img)
+            key = np.asarray(params, dtype=np.float64).tobytes()
+            cache = {} if blocks_cache is None else blocks_cache
+            if key not in cache:
+                matrix = params_to_matrix(params, grid_center)
+                cache[key] = block_shifts(fixed_img, moving_img, matrix, roi_img, fov_img)
+            blocks = cache[key]
             shift = blocks.median_shift()
             signals["region_shift_mm"] = float(np.linalg.norm(shift)) if np.all(np.isfinite(shift)) else float("nan")
             signals["region_shift_vector_mm"] = [round(float(v), 2) for v in shift]

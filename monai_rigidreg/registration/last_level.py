@@ -18,19 +18,34 @@ weight on the CT.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import SimpleITK as sitk
 import torch
 
-from monai_rigidreg.core.geometry import Grid, invert_matrix, transform_points
+from monai_rigidreg.core.geometry import Grid, grid_points, invert_matrix, matrix_to_params, transform_points
 from monai_rigidreg.core.grid_sampling import normalize_hu, sitk_on_grid
 from monai_rigidreg.core.image_ops import erode
 from monai_rigidreg.networks.gauss_newton import alignment_features, gauss_newton_align
+from monai_rigidreg.registration.confidence import swap_inputs
 from monai_rigidreg.registration.match_region import weight_on_grid
+from monai_rigidreg.registration.search import matrix_distance_mm
 
-__all__ = ["CANDIDATE_SHARE_MAX", "native_grid", "refine_native", "support_reach"]
+if TYPE_CHECKING:
+    from monai_rigidreg.registration.state import Background, RegistrationState
+
+__all__ = ["CANDIDATE_SHARE_MAX", "EARLY_SWAP_MAX_CHANGE_MM", "LastLevelStage", "native_grid", "refine_native",
+           "support_reach"]
+
+EARLY_SWAP_MAX_CHANGE_MM = 1.0
+"""The confidence check's swapped-input estimate, started beside the last level with the CT masked by the field of
+view as the network's estimate places it, is used when the last level moved that estimate by at most this (mm,
+``details.native_level.change_mm``, the mean over the network grid's points); beyond it the twin is computed again
+from the refined estimate (``details.swap_estimate``: ``"beside the last level"`` or ``"after the last level"``).
+On the clinical-geometry pairs the last level moves a converged estimate by a few tenths of a millimetre."""
 
 CANDIDATE_SHARE_MAX = 0.8
 """The last level's steps go over the candidate voxels (:func:`support_reach`) only where these are at most this
@@ -140,3 +155,71 @@ def support_reach(fov: torch.Tensor, radius: Sequence[int], spacing: Sequence[fl
     inside = fov > 0
     reach = min((r + 0.5) * s for r, s in zip(radius, spacing))
     return (inside if weight is None else inside & (weight > 0)), float(reach)
+
+
+class LastLevelStage:
+    """Stage 6 of :class:`~monai_rigidreg.registration.RigidRegistrar`: the last level at native resolution, with the
+    confidence check's swapped-input estimate beside it. For a class with the registrar's ``network``, ``device``,
+    ``estimate``, ``native_*`` settings, ``_in_background``, ``_fixed_support`` and ``_runner_up_within_ct``."""
+
+    network: Any
+    device: Any
+    native_bias_degree: int
+    native_bias_degree_roi: int
+    native_highpass_sigma_mm: float | None
+    native_max_voxels: int
+    estimate: Callable[..., np.ndarray]
+    _in_background: Callable[..., Background]
+    _fixed_support: Callable[..., torch.Tensor | None]
+    _runner_up_within_ct: Callable[..., tuple[np.ndarray, bool]]
+
+    def _last_level(self, state: RegistrationState, swap_beside: bool = True) -> None:
+        """Stage 6: the last level (:meth:`_native`) from the network's estimate, where it runs. The confidence
+        check's swapped-input estimate starts beside it in a worker thread: the network's many small operations
+        keep about one core busy whatever the thread count, and the last level has the other. Its CT is masked by
+        the field of view as the network's estimate places it; where the last level moves the estimate by more than
+        :data:`EARLY_SWAP_MAX_CHANGE_MM`, that mask is stale and the twin is computed again after it, from the
+        refined estimate. ``swap_beside=False``: no swapped-input estimate beside it."""
+        if not state.native:
+            return
+        run, details = state.run, state.details
+        if swap_beside and state.options.assess and not state.options.refine:
+            state.early_swap = self._in_background(
+                self.estimate, *swap_inputs(run.moving_t, run.fixed_t, run.grid, run.residual, state.fov_t,
+                                            self._fixed_support(state)),
+                run.grid, thread_name="monai-rigidreg-swap")
+        t = time.perf_counter()
+        refined, details["native_level"] = self._native(state.inputs.fixed, state.inputs.moving, run.total,
+                                                        state.fov_img, state.weights, run.grid,
+                                                        region=state.weight_img is not None)
+        refined, switched = self._runner_up_within_ct(state, refined)  # partial overlap only (registration.overlap)
+        state.params = matrix_to_params(refined, state.run.grid.center())
+        state.net_params = state.params.copy()
+        state.timings["native_level"] = time.perf_counter() - t
+        if state.early_swap is not None:
+            stale = switched or details["native_level"]["change_mm"] > EARLY_SWAP_MAX_CHANGE_MM
+            details["swap_estimate"] = "after the last level" if stale else "beside the last level"
+            if stale:
+                state.early_swap.wait()
+                state.early_swap = None
+
+    def _native(self, fixed_img: sitk.Image, moving_img: sitk.Image, matrix: np.ndarray, fov_img: sitk.Image,
+                weights: list[sitk.Image], grid: Grid, region: bool = False) -> tuple[np.ndarray, dict[str, Any]]:
+        """The last level (:func:`~monai_rigidreg.registration.last_level.refine_native`) from ``matrix`` with the
+        fine stage's feature settings (the local contrast at ``native_highpass_sigma_mm`` when set) and this
+        registrar's ``native_bias_degree`` (``native_bias_degree_roi`` when ``region``: a match region, ``--roi``
+        or ``--match bone``, is among ``weights``). Returns the refined matrix and ``details.native_level``: the
+        level's grid, bias degree and how far it moved the estimate (mean distance over the points of ``grid``,
+        the network grid, mm)."""
+        stage = self.network.fine_stage
+        degree = self.native_bias_degree_roi if region else self.native_bias_degree
+        sigma = stage.highpass_sigma_mm if self.native_highpass_sigma_mm is None else self.native_highpass_sigma_mm
+        refined, native_grid = refine_native(
+            fixed_img, moving_img, matrix, fov_img, weights, highpass_sigma_mm=sigma,
+            highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
+            bias_degree=degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
+            secant=getattr(stage, "secant", False), max_voxels=self.native_max_voxels)
+        detail = {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size), "bias_degree": degree,
+                  "highpass_sigma_mm": float(sigma),
+                  "change_mm": round(matrix_distance_mm(refined, matrix, grid_points(grid, 8)), 3)}
+        return refined, detail

@@ -29,8 +29,11 @@ import SimpleITK as sitk
 
 from monai_rigidreg.core.errors import InputError
 from monai_rigidreg.core.geometry import Grid, invert_matrix, transform_points
+from monai_rigidreg.registration.match_region import weight_on_grid
 
 if TYPE_CHECKING:
+    import torch
+
     from monai_rigidreg.registration.state import RegistrationState
 
 __all__ = ["CT_EDGE_MARGIN_MM", "OVERLAP_WEIGHTED_BELOW", "OVERLAP_FLAG_BELOW", "TISSUE_HU", "MIN_TISSUE_SHARE",
@@ -146,6 +149,14 @@ class OverlapStage:
     _native: Callable[..., tuple[np.ndarray, dict[str, Any]]]
     _image_match: Callable[..., list[float]]
     _on_grid: Callable[..., Any]
+
+    @staticmethod
+    def _fixed_support(state: RegistrationState) -> torch.Tensor | None:
+        """Where the CT has data on the winning run's grid (``[x, y, z]``), where the match is restricted to the CT's
+        box (``state.domain``); ``None`` elsewhere."""
+        if state.domain is None:
+            return None
+        return weight_on_grid([state.domain], state.run.grid)[0]
 
     def _sample_fov(self, state: RegistrationState) -> None:
         """Stage 1: the CBCT's field of view sampled (``state.fov_sample``); a field of view without tissue is

@@ -62,9 +62,7 @@ from monai_rigidreg.core.device import adapted_cpu_threads, resolve_device
 from monai_rigidreg.core.errors import InputError
 from monai_rigidreg.core.geometry import (
     PARAM_NAMES,
-    Grid,
     grid_points,
-    matrix_to_params,
     params_to_sitk,
     recenter_params,
     target_registration_error,
@@ -75,31 +73,25 @@ from monai_rigidreg.io.volumes import resample
 from monai_rigidreg.registration.body import BodyMaskCache
 from monai_rigidreg.registration.calibration import UNCALIBRATED_MEANING, load_calibration
 from monai_rigidreg.registration.classical import register_sitk
-from monai_rigidreg.registration.confidence import LOCAL_GAIN_LIMIT, ConfidenceStage, cylindrical_fov_mask, swap_inputs
+from monai_rigidreg.registration.confidence import LOCAL_GAIN_LIMIT, ConfidenceStage, cylindrical_fov_mask
 from monai_rigidreg.registration.inputs import check_cascade_steps, read_inputs
-from monai_rigidreg.registration.last_level import refine_native
+from monai_rigidreg.registration.last_level import EARLY_SWAP_MAX_CHANGE_MM, LastLevelStage
 from monai_rigidreg.registration.lead import LeadPath
 from monai_rigidreg.registration.match_region import RoiLike, match_weight, parse_roi
 from monai_rigidreg.registration.network_run import NetworkRuns
 from monai_rigidreg.registration.overlap import OverlapStage
 from monai_rigidreg.registration.result import RegistrationResult
-from monai_rigidreg.registration.search import StartChoice, matrix_distance_mm
+from monai_rigidreg.registration.search import StartChoice
 from monai_rigidreg.registration.state import Background, RegistrationOptions, RegistrationState
 
 __all__ = ["RigidRegistrar", "fine_stage_switch", "EARLY_SWAP_MAX_CHANGE_MM"]
 
 logger = logging.getLogger(__name__)
 
-EARLY_SWAP_MAX_CHANGE_MM = 1.0
-"""The confidence check's swapped-input estimate, started beside the last level with the CT masked by the field of
-view as the network's estimate places it, is used when the last level moved that estimate by at most this (mm,
-``details.native_level.change_mm``, the mean over the network grid's points); beyond it the twin is computed again
-from the refined estimate (``details.swap_estimate``: ``"beside the last level"`` or ``"after the last level"``).
-On the clinical-geometry pairs the last level moves a converged estimate by a few tenths of a millimetre."""
 
 
 
-class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage, LeadPath):
+class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, ConfidenceStage, LeadPath):
     """A loaded network plus its preprocessing settings, reusable across many registrations.
 
     Args:
@@ -407,57 +399,6 @@ class RigidRegistrar(NetworkRuns, StartChoice, OverlapStage, ConfidenceStage, Le
                 else "choice of start"}
         if state.inputs.warnings:
             details.setdefault("warnings", []).extend(state.inputs.warnings)
-
-    def _last_level(self, state: RegistrationState, swap_beside: bool = True) -> None:
-        """Stage 6: the last level (:meth:`_native`) from the network's estimate, where it runs. The confidence
-        check's swapped-input estimate starts beside it in a worker thread: the network's many small operations
-        keep about one core busy whatever the thread count, and the last level has the other. Its CT is masked by
-        the field of view as the network's estimate places it; where the last level moves the estimate by more than
-        :data:`EARLY_SWAP_MAX_CHANGE_MM`, that mask is stale and the twin is computed again after it, from the
-        refined estimate. ``swap_beside=False``: no swapped-input estimate beside it."""
-        if not state.native:
-            return
-        run, details = state.run, state.details
-        if swap_beside and state.options.assess and not state.options.refine:
-            state.early_swap = self._in_background(
-                self.estimate, *swap_inputs(run.moving_t, run.fixed_t, run.grid, run.residual, state.fov_t,
-                                            self._fixed_support(state)),
-                run.grid, thread_name="monai-rigidreg-swap")
-        t = time.perf_counter()
-        refined, details["native_level"] = self._native(state.inputs.fixed, state.inputs.moving, run.total,
-                                                        state.fov_img, state.weights, run.grid,
-                                                        region=state.weight_img is not None)
-        refined, switched = self._runner_up_within_ct(state, refined)  # partial overlap only (registration.overlap)
-        state.params = matrix_to_params(refined, state.run.grid.center())
-        state.net_params = state.params.copy()
-        state.timings["native_level"] = time.perf_counter() - t
-        if state.early_swap is not None:
-            stale = switched or details["native_level"]["change_mm"] > EARLY_SWAP_MAX_CHANGE_MM
-            details["swap_estimate"] = "after the last level" if stale else "beside the last level"
-            if stale:
-                state.early_swap.wait()
-                state.early_swap = None
-
-    def _native(self, fixed_img: sitk.Image, moving_img: sitk.Image, matrix: np.ndarray, fov_img: sitk.Image,
-                weights: list[sitk.Image], grid: Grid, region: bool = False) -> tuple[np.ndarray, dict[str, Any]]:
-        """The last level (:func:`~monai_rigidreg.registration.last_level.refine_native`) from ``matrix`` with the
-        fine stage's feature settings (the local contrast at ``native_highpass_sigma_mm`` when set) and this
-        registrar's ``native_bias_degree`` (``native_bias_degree_roi`` when ``region``: a match region, ``--roi``
-        or ``--match bone``, is among ``weights``). Returns the refined matrix and ``details.native_level``: the
-        level's grid, bias degree and how far it moved the estimate (mean distance over the points of ``grid``,
-        the network grid, mm)."""
-        stage = self.network.fine_stage
-        degree = self.native_bias_degree_roi if region else self.native_bias_degree
-        sigma = stage.highpass_sigma_mm if self.native_highpass_sigma_mm is None else self.native_highpass_sigma_mm
-        refined, native_grid = refine_native(
-            fixed_img, moving_img, matrix, fov_img, weights, highpass_sigma_mm=sigma,
-            highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
-            bias_degree=degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
-            secant=getattr(stage, "secant", False), max_voxels=self.native_max_voxels)
-        detail = {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size), "bias_degree": degree,
-                  "highpass_sigma_mm": float(sigma),
-                  "change_mm": round(matrix_distance_mm(refined, matrix, grid_points(grid, 8)), 3)}
-        return refined, detail
 
     def _refine(self, state: RegistrationState) -> None:
         """Stage 7, with ``refine``: SimpleITK Mattes MI (:func:`~monai_rigidreg.registration.classical.register_sitk`)

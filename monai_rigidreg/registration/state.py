@@ -86,6 +86,8 @@ class RegistrationState:
         domain: the CT's box as a match weight (:func:`~monai_rigidreg.registration.overlap.ct_domain_weight`), where
             the CT does not cover the CBCT's tissue (``None``: it does, and nothing is restricted).
         other_runs: the network's runs from the other starts, best image match first (where the search ran them).
+        region_blocks: the ROI's block check per estimate (its parameters' bytes), computed once per call (the
+            network-led path's check and the confidence judge the same estimate).
         details, timings: what goes into the result's ``details`` and ``timings``.
     """
 
@@ -111,6 +113,7 @@ class RegistrationState:
     fov_sample: Any = None
     domain: sitk.Image | None = None
     other_runs: list[NetworkRun] = field(default_factory=list)
+    region_blocks: dict[bytes, Any] = field(default_factory=dict)
     confidence: float = float("nan")
     flagged: bool = False
 

@@ -86,6 +86,7 @@ def test_registrar_passes_its_native_bias_degree_to_the_last_level(monkeypatch):
     defaults to the whole-FOV one); degrees below -1 are refused."""
     import pytest
 
+    import monai_rigidreg.registration.last_level as ll_mod
     import monai_rigidreg.registration.registrar as reg_mod
     from monai_rigidreg.core.errors import InputError
 
@@ -95,7 +96,7 @@ def test_registrar_passes_its_native_bias_degree_to_the_last_level(monkeypatch):
         seen.append(kwargs["bias_degree"])
         raise RuntimeError("stop")
 
-    monkeypatch.setattr(reg_mod, "refine_native", record)
+    monkeypatch.setattr(ll_mod, "refine_native", record)
     for (whole, roi), registrar in (
         ((0, 2), reg_mod.RigidRegistrar.from_bundle(device="cpu")),
         ((1, 1), reg_mod.RigidRegistrar.from_bundle(device="cpu", native_bias_degree=1,
@@ -116,7 +117,7 @@ def test_registrar_passes_its_native_bias_degree_to_the_last_level(monkeypatch):
         sigmas.append(kwargs["highpass_sigma_mm"])
         raise RuntimeError("stop")
 
-    monkeypatch.setattr(reg_mod, "refine_native", record_sigma)
+    monkeypatch.setattr(ll_mod, "refine_native", record_sigma)
     shipped = reg_mod.RigidRegistrar.from_bundle(device="cpu")
     own = reg_mod.RigidRegistrar.from_bundle(device="cpu", native_highpass_sigma_mm=None)
     for registrar in (shipped, own):

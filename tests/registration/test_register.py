@@ -365,13 +365,13 @@ def test_a_failing_stage_leaves_no_worker_thread_running(fast_pair, shipped_regi
     worker has finished (none left using the network); the next registration runs normally."""
     import threading
 
-    from monai_rigidreg.registration import confidence, registrar, search
+    from monai_rigidreg.registration import confidence, last_level, search
 
     def failing(*args, **kwargs):
         raise RuntimeError(f"{broken} broke")
 
     with monkeypatch.context() as m:
-        m.setattr({"refine_native": registrar, "assess_estimate": confidence, "global_search": search}[broken], broken,
+        m.setattr({"refine_native": last_level, "assess_estimate": confidence, "global_search": search}[broken], broken,
                   failing)
         with pytest.raises(RuntimeError, match=f"{broken} broke"):
             shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, thorough=True)
@@ -388,7 +388,7 @@ def test_a_stale_early_twin_is_computed_again_after_the_last_level(fast_pair, sh
     (its CT masked for the network's estimate) is dropped and the confidence check computes its own from the refined
     estimate: the same signals as a registration that never started one early."""
     import monai_rigidreg.registration.confidence as conf_mod
-    import monai_rigidreg.registration.registrar as reg_mod
+    import monai_rigidreg.registration.last_level as reg_mod
 
     real = conf_mod.assess_estimate
     seen = []
@@ -419,7 +419,7 @@ def test_registrar_lowers_its_threads_while_other_work_is_busy_and_restores_them
     adapt_threads=False (``--threads N``) keeps the counts as set."""
     import SimpleITK as sitk_
 
-    import monai_rigidreg.registration.registrar as reg_mod
+    import monai_rigidreg.registration.last_level as reg_mod
 
     seen = []
     real_native = reg_mod.refine_native
@@ -562,7 +562,7 @@ def test_a_better_swapped_estimate_replaces_a_wrong_one(fast_pair, shipped_regis
     """The last level is made to return an estimate 12 mm off (once); the swapped-input estimate disagrees, matches
     the images better, and replaces it after its own last level: the result is right again, in the right frame
     (a composition in the wrong order or direction would leave it centimetres off)."""
-    import monai_rigidreg.registration.registrar as reg_mod
+    import monai_rigidreg.registration.last_level as reg_mod
 
     spoiled_once, calls = _last_level_spoiled_once(reg_mod.refine_native)
     monkeypatch.setattr(reg_mod, "refine_native", spoiled_once)
@@ -611,7 +611,7 @@ def test_a_replacing_twin_that_disagrees_with_its_own_twin_is_flagged(fast_pair,
     kept disagreeing, so the disagreement counts and the result is flagged (not so without the replacement, see
     the test above)."""
     import monai_rigidreg.registration.confidence as conf_mod
-    import monai_rigidreg.registration.registrar as reg_mod
+    import monai_rigidreg.registration.last_level as reg_mod
 
     real_assess = conf_mod.assess_estimate
     spoiled_once, _ = _last_level_spoiled_once(reg_mod.refine_native)
@@ -738,7 +738,7 @@ def test_tissue_on_air_separates_right_and_grossly_wrong_poses(pair, small_regis
 def test_the_last_level_bias_degree_follows_the_match_region(fast_pair, shipped_registrar, monkeypatch):
     """Without a match region the last level fits a constant bias (the bundle's native_bias_degree, 0), with
     ``roi=`` the quadratic (native_bias_degree_roi, 2); details.native_level says which it used."""
-    import monai_rigidreg.registration.registrar as reg_mod
+    import monai_rigidreg.registration.last_level as reg_mod
 
     real = reg_mod.refine_native
     seen = []
