@@ -364,25 +364,32 @@ class ConfidenceStage:
         return assess_estimate(moving_t, fixed_t, grid, params, fov, estimate, region=region, hu_range=self.hu_range,
                                swapped=swapped if swap else None, fixed_support=fixed_support)
 
-    def _assess(self, state: RegistrationState, swap: bool = True, record: bool = True) -> dict[str, Any] | None:
+    def _assess(self, state: RegistrationState, swap: bool = True, record: bool = True,
+                cheap: dict[str, Any] | None = None) -> dict[str, Any] | None:
         """Stage 8, with ``assess``: :meth:`_confidence`, the overlap under the final estimate (``_overlap_report``)
         and the verdict (:func:`~monai_rigidreg.registration.calibration.verdict`): the calibrated confidence and
         ``details.flag_reasons``; inputs not in HU or that look swapped (unless allowed) get confidence 0.
         ``swap=False, record=False``: the cheap signals only, not recorded (the network-led path's check): their
-        ``confidence`` is the uncalibrated rule score. Returns the signals (``None`` where the call does not assess)."""
+        ``confidence`` is the uncalibrated rule score. ``swap=False, cheap=signals``: those cheap signals of the
+        current estimate (an earlier ``record=False`` call's) recorded with the verdict, not computed again.
+        Returns the signals (``None`` where the call does not assess)."""
         options, timings, details = state.options, state.timings, state.details
         if record and not options.assess:
             return None
         t = time.perf_counter()
-        # the region check looks at the ROI itself (with --match bone too: the blocks need the soft tissue around
-        # the bone to match, and the box's layout of blocks)
-        roi = options.roi
-        roi_img = None if roi is None else state.weight_img if options.match == "soft" else match_weight(
-            state.inputs.fixed, roi)
-        state.params, replaced, signals = self._confidence(
-            state.inputs.fixed, state.inputs.moving, state.fov_img, state.fov_t, state.run, state.params,
-            state.weights, state.weight_img, roi_img, state.native, state.staged and not options.refine, details,
-            state.early_swap, self._fixed_support(state), state.domain, swap=swap, blocks_cache=state.region_blocks)
+        if cheap is not None and not swap:
+            replaced, signals = False, {k: v for k, v in cheap.items() if k != "seconds"}
+        else:
+            # the region check looks at the ROI itself (with --match bone too: the blocks need the soft tissue
+            # around the bone to match, and the box's layout of blocks)
+            roi = options.roi
+            roi_img = None if roi is None else state.weight_img if options.match == "soft" else match_weight(
+                state.inputs.fixed, roi)
+            state.params, replaced, signals = self._confidence(
+                state.inputs.fixed, state.inputs.moving, state.fov_img, state.fov_t, state.run, state.params,
+                state.weights, state.weight_img, roi_img, state.native, state.staged and not options.refine, details,
+                state.early_swap, self._fixed_support(state), state.domain, swap=swap,
+                blocks_cache=state.region_blocks)
         if state.early_swap is not None:
             timings["swap_estimate"] = state.early_swap.seconds
         if replaced:

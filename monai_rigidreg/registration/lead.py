@@ -116,17 +116,18 @@ class LeadPath:
         self._choose_start(state, None)  # no search: the identity's run is the estimate
         if state.fov_t is None:  # the check needs the field of view on the grid, with or without ``assess``
             state.fov_t = self._on_grid(state.fov_img, state.run.grid, "nearest", 0.0, state.run.sampling)[0]
-        # the swapped-input estimate beside the last level, as on the thorough path: the calibrated confidence
-        # (registration.calibration) was fitted with it, so a result without a fallback is scored as any other
-        self._last_level(state)
-        self._lead_check(state)
+        # no swapped-input estimate: the calibrated confidence (registration.calibration) needs none, and the
+        # fallback computes it where the check fails
+        self._last_level(state, swap_beside=False)
+        signals = self._lead_check(state)
         check = state.details["lead_check"]
         run_fallback = bool(check["reasons"]) and self.lead_fallback
         state.details["fallback"] = {"run": run_fallback, "reasons": list(check["reasons"])}
         if run_fallback:
             self._fallback(state)
         else:
-            self._assess(state)
+            # the check's signals are the confidence's (same estimate): recorded, not computed again
+            self._assess(state, swap=False, cheap=signals)
 
     def _lead_check(self, state: RegistrationState) -> dict[str, Any]:
         """The check of the network's polished estimate (the module's doc, step 3): records
@@ -170,10 +171,10 @@ class LeadPath:
         if searching is not None:
             self._choose_start(state, searching)
         if state.details.get("start", "identity") == "identity":
-            # the identity's run, already polished; its swapped-input estimate was made beside its last level
+            # the identity's run, already polished: its swapped-input estimate is computed by the confidence
             state.params, state.net_params = polished, polished.copy()
+            state.details["swap_estimate"] = "after the check"
         else:
-            state.early_swap = None  # another start won: its own twin starts beside its last level
-            self._last_level(state)
+            self._last_level(state)  # another start won: its swapped-input estimate starts beside its last level
         self._assess(state)
         state.timings["fallback"] = time.perf_counter() - t
