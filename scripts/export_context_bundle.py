@@ -29,6 +29,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("checkpoint", type=Path, help="a training checkpoint (with 'network') or a model.pt state dict")
     ap.add_argument("output", type=Path, help="the bundle folder to write (replaced if it holds an earlier export)")
     ap.add_argument("--passes", type=int, nargs=2, default=[2, 1], help="inference passes of the 8 mm and 4 mm levels")
+    ap.add_argument("--coarse-start", choices=("coarse", "identity", "both"), default="coarse",
+                    help="where the local levels start at inference (ContextCorrelationNet's coarse_start)")
     args = ap.parse_args(argv)
     state = torch.load(args.checkpoint, map_location="cpu", weights_only=True)
     if isinstance(state, dict) and "network" in state:
@@ -47,6 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     train = json.loads((SHIPPED / "configs" / "train_context.json").read_text())
     regression = dict(train["network_def#regression"])
     regression["passes"] = list(args.passes)
+    regression["coarse_start"] = args.coarse_start
     regression.pop("train_autocast", None)  # a training setting (inference runs in float32)
     regression["context_factor"] = train["context_factor"]
     inference_path = args.output / "configs" / "inference.json"
@@ -54,7 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     inference["network_def"]["regression"] = regression
     inference_path.write_text(json.dumps(inference, indent=4) + "\n")
     torch.save(state, args.output / "models" / "model.pt")
-    marker.write_text(json.dumps({"checkpoint": str(args.checkpoint.resolve()), "passes": list(args.passes)}) + "\n")
+    marker.write_text(json.dumps({"checkpoint": str(args.checkpoint.resolve()), "passes": list(args.passes),
+                                      "coarse_start": args.coarse_start}) + "\n")
     print(f"bundle with {args.checkpoint.name} -> {args.output}")
     return 0
 

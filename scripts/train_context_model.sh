@@ -2,13 +2,15 @@
 # The long, resumable training run of the context correlation network (bundle 0.5 weights; see
 # bundles/cbct_ct_rigid/docs/README.md, "Training the next weights").
 #   usage: [DATA=data] [SHARED=../shared/data] [DEVICE=cpu|cuda] [BATCH=4] [EPOCH_LENGTH=100] [WORKERS=1] \
-#          [SAMPLER_DEVICE=cpu|cuda] [CASES=12] [SIM_DEVICE=cpu|cuda] \
+#          [SAMPLER_DEVICE=cpu|cuda] [CASES=12] [SIM_DEVICE=cpu|cuda] [INIT=weights.pt [INIT_PARTIAL=1]] \
 #          scripts/train_context_model.sh [RUN_DIR] [EPOCHS] [--resume]
 # First call: simulates the training data when it is missing (scripts/make_training_data.sh, about 8 minutes on
 # 2 cores; scripts/make_clinical_training_data.py, about 10 minutes), then trains from scratch. Resumed (3rd argument
 # --resume): continues from the newest checkpoint in RUN_DIR/models (epoch, optimizer, learning-rate schedule,
 # samples seen and wall time included); without a checkpoint there it stops with exit status 2 and writes nothing.
 # A new run into a folder that holds an earlier run also stops with exit status 2 (use --resume or another folder).
+# INIT (a new run only): start the network from these weights (a model.pt or a training checkpoint) instead of from
+# scratch; INIT_PARTIAL=1 takes only the tensors whose names and shapes match (a changed design keeping trained parts).
 # One epoch = 100 iterations of batch 4 = 400 samples; 750 epochs = 300 000 samples.
 # Held out of training (never read here): thorax_4dct_phase00_itkelastix, head_tigre_ct (and the stock Shepp-Logan
 # phantom, the validation set).
@@ -26,6 +28,8 @@ WORKERS=${WORKERS:-1}
 SAMPLER_DEVICE=${SAMPLER_DEVICE:-cpu}  # cuda: samples drawn on the GPU (then WORKERS=0)
 CASES=${CASES:-12}                     # clinical training pairs per CT
 SIM_DEVICE=${SIM_DEVICE:-cpu}
+INIT=${INIT:-}
+INIT_PARTIAL=${INIT_PARTIAL:-0}
 TRAIN_CTS=(abdomen_pelvis_totalsegmentator_example_ct head_tcia_cptac_lscc_ct thorax_tcia_cptac_pda_ct
            abdomen_pelvis_tcia_tcga_ov_ct)
 cts=()
@@ -36,6 +40,12 @@ for name in "${TRAIN_CTS[@]}"; do
 done
 if [ -n "$RESUME" ] && [ "$RESUME" != "--resume" ]; then
     echo "train_context_model: the third argument must be --resume, got '$RESUME'" >&2; exit 2
+fi
+if [ -n "$INIT" ] && [ ! -f "$INIT" ]; then
+    echo "train_context_model: INIT=$INIT: no such file" >&2; exit 2
+fi
+if [ -n "$INIT" ] && [ -n "$RESUME" ]; then
+    echo "train_context_model: INIT starts a new run; a resumed run continues from its checkpoint" >&2; exit 2
 fi
 if [ -n "$RESUME" ]; then
     if ! ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev/null 2>&1; then
@@ -82,4 +92,6 @@ python -m monai.bundle run \
     --train_cts "$(list "${cts[@]}")" --val_datalist "$DATA/val_paper/dataset.json" \
     --epochs "$EPOCHS" --seed 0 --device "\$torch.device('$DEVICE')" --batch_size "$BATCH" \
     --epoch_length "$EPOCH_LENGTH" --num_workers "$WORKERS" --train#dataset#device "$SAMPLER_DEVICE" \
-    --resume "$([ -n "$RESUME" ] && echo True || echo False)" 2>&1 | tee -a "$RUN/train_log.txt"
+    --resume "$([ -n "$RESUME" ] && echo True || echo False)" \
+    ${INIT:+--init_weights "$(realpath "$INIT")" --init_partial "$([ "$INIT_PARTIAL" = 1 ] && echo True || echo False)"} \
+    2>&1 | tee -a "$RUN/train_log.txt"

@@ -408,6 +408,9 @@ def main() -> None:
     ap.add_argument("--no-rule", action="store_true",
                     help="the calibrated confidence alone flags (not also a signal past its hand-set limit)")
     ap.add_argument("--max-false-alarm-rate", type=float, default=0.1)
+    ap.add_argument("--overlap-flag-below", type=float, default=None,
+                    help="score the cases with this overlap flag threshold instead of the registrar's "
+                         "OVERLAP_FLAG_BELOW (to choose it)")
     ap.add_argument("--version", default=f"{monai_rigidreg.__version__}-{datetime.date.today().isoformat()}")
     ap.add_argument("--write", type=Path, default=None, help="write the calibration fitted on all cases here")
     ap.add_argument("--limit", type=int, default=0, help="stop after this many new cases (0: all)")
@@ -427,6 +430,11 @@ def main() -> None:
         collect(args, out)
         args.cases = [args.cases]
     if args.fit:
+        if args.overlap_flag_below is not None:
+            from monai_rigidreg.registration import overlap
+
+            overlap.OVERLAP_FLAG_BELOW = float(args.overlap_flag_below)
+            out(f"overlap flag threshold: {overlap.OVERLAP_FLAG_BELOW} (the registrar's default is overridden)")
         fit(args, out)
     end_run(out, monitor, t0, args.results, [])
 

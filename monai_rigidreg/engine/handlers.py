@@ -258,16 +258,21 @@ class ResumeHandler:
         init_weights: a network state dict file (e.g. the shipped ``models/model.pt``) loaded into
             ``load_dict["network"]`` when training does not resume from a checkpoint; the optimizer, the learning
             rate schedule and the epoch count start afresh. A resumed run ignores it (the checkpoint holds the
-            network it had reached).
+            network it had reached). It may also be a training checkpoint (its ``"network"`` is taken).
+        init_partial: load only the tensors of ``init_weights`` whose names and shapes the network has, and log
+            the rest (a new design that keeps part of an earlier one, e.g. new coarse-level layers beside trained
+            local levels); it stops with an error when nothing matches. Default: every tensor must match.
     """
 
     def __init__(self, ckpt_dir: str | Path, load_dict: dict[str, Any], resume: bool = True,
-                 map_location: Any = None, init_weights: str | Path | None = None) -> None:
+                 map_location: Any = None, init_weights: str | Path | None = None, init_partial: bool = False
+                 ) -> None:
         self.ckpt_dir = Path(ckpt_dir)
         self.load_dict = load_dict
         self.resume = bool(resume)
         self.map_location = map_location
         self.init_weights = Path(init_weights) if init_weights else None
+        self.init_partial = bool(init_partial)
         if self.init_weights is not None and not self.init_weights.is_file():
             raise FileNotFoundError(f"init_weights: no such file: {self.init_weights}")
 
@@ -277,8 +282,23 @@ class ResumeHandler:
         import torch  # only when fine-tuning
 
         state = torch.load(self.init_weights, map_location=self.map_location, weights_only=True)
-        self.load_dict["network"].load_state_dict(state)
-        logger.info("network initialised from %s (optimizer and schedule start afresh)", self.init_weights)
+        if isinstance(state.get("network"), dict):
+            state = state["network"]
+        network = self.load_dict["network"]
+        if not self.init_partial:
+            network.load_state_dict(state)
+            logger.info("network initialised from %s (optimizer and schedule start afresh)", self.init_weights)
+            return
+        own = network.state_dict()
+        taken = {k: v for k, v in state.items() if k in own and tuple(own[k].shape) == tuple(v.shape)}
+        if not taken:
+            raise ValueError(f"init_weights {self.init_weights}: no tensor matches the network's names and shapes")
+        network.load_state_dict(taken, strict=False)
+        fresh = sorted(k for k in own if k not in taken)
+        unused = sorted(k for k in state if k not in taken)
+        logger.info("network initialised in part from %s: %d of %d tensors taken; freshly initialised: %s; "
+                    "not used: %s (optimizer and schedule start afresh)", self.init_weights, len(taken), len(own),
+                    ", ".join(fresh) or "none", ", ".join(unused) or "none")
 
     def latest(self) -> Path | None:
         """The newest epoch checkpoint, or ``None``."""

@@ -20,9 +20,10 @@ from torch import nn
 
 __all__ = ["NORMS", "OneDNNConv3d", "ResidualStage3d"]
 
-NORMS = ("INSTANCE", "BATCH")
+NORMS = ("INSTANCE", "BATCH", "NONE")
 """Normalisation layers :class:`ResidualStage3d` builds (MONAI's names; a ``(name, kwargs)`` pair passes keyword
-arguments such as ``{"affine": True}`` to the torch layer, as MONAI's factories do)."""
+arguments such as ``{"affine": True}`` to the torch layer, as MONAI's factories do; ``"NONE"``: no normalisation,
+for features that must not depend on the extent of the volume they were computed on)."""
 
 
 def _norm(norm: str | tuple, channels: int) -> nn.Module:
@@ -32,6 +33,8 @@ def _norm(norm: str | tuple, channels: int) -> nn.Module:
         return nn.InstanceNorm3d(channels, **kwargs)
     if name == "BATCH":
         return nn.BatchNorm3d(channels, **kwargs)
+    if name == "NONE":
+        return nn.Identity()
     raise ValueError(f"norm must be one of {NORMS} (or a (name, kwargs) pair), got {norm!r}")
 
 
@@ -82,7 +85,7 @@ class ResidualStage3d(nn.Module):
         out_channels: output channels ``C_out``.
         stride: stride of the first unit and of the residual branch (2 halves every spatial size, rounding up).
         subunits: conv-norm-PReLU units (at least 1).
-        norm: ``"INSTANCE"``, ``"BATCH"`` or ``(name, kwargs)`` (see :data:`NORMS`).
+        norm: ``"INSTANCE"``, ``"BATCH"``, ``"NONE"`` or ``(name, kwargs)`` (see :data:`NORMS`).
 
     Shapes: ``[B, C_in, x, y, z]`` -> ``[B, C_out, ceil(x / stride), ceil(y / stride), ceil(z / stride)]``.
     """

@@ -46,7 +46,8 @@ from monai_rigidreg.core.warp import warp_volume
 from monai_rigidreg.networks.blocks import ResidualStage3d
 from monai_rigidreg.networks.correlation_net import local_cost_volume, weighted_rigid_fit
 
-__all__ = ["ContextCorrelationNet", "robust_rigid_fit", "context_from_fixed", "subcell_shifts", "sparse_cost_volume"]
+__all__ = ["COARSE_STARTS", "ContextCorrelationNet", "robust_rigid_fit", "context_from_fixed", "subcell_shifts",
+           "sparse_cost_volume"]
 
 
 CONTENT_LEVEL = 0.1
@@ -72,6 +73,29 @@ def robust_rigid_fit(points_fixed: torch.Tensor, points_moving: torch.Tensor, we
         r2 = ((mapped - q) ** 2).sum(-1)
         fit = weighted_rigid_fit(p, q, weights.to(torch.float64) / (1.0 + r2 / float(sigma_mm) ** 2))
     return fit
+
+
+COARSE_STARTS = ("coarse", "identity", "both")
+"""Where :class:`ContextCorrelationNet`'s local levels start at inference: the coarse level's estimate (as trained),
+the identity (the coarse level skipped), or both, per sample the one whose final estimate matches the images better
+(:func:`_warped_ncc`)."""
+
+
+def _warped_ncc(moving: torch.Tensor, fixed: torch.Tensor, matrix: torch.Tensor, grid: Grid) -> torch.Tensor:
+    """``[B]`` intensity NCC of ``moving`` warped by ``matrix`` (``[B, 4, 4]`` fixed -> moving) with ``fixed``, over
+    the voxels that the warp samples inside ``moving``'s box (``[B, C, x, y, z]`` on ``grid``)."""
+    warped = warp_volume(moving, matrix, grid, grid)
+    inside = warp_volume(torch.ones_like(moving[:, :1]), matrix, grid, grid) > 0.999
+    w = inside.to(moving.dtype).expand_as(warped)
+    n = w.flatten(1).sum(1).clamp(min=1.0)
+
+    def centred(x: torch.Tensor) -> torch.Tensor:
+        return (x - ((x * w).flatten(1).sum(1) / n).view(-1, *[1] * (x.ndim - 1))) * w
+
+    a, c = centred(warped), centred(fixed)
+    num = (a * c).flatten(1).sum(1)
+    den = ((a * a).flatten(1).sum(1) * (c * c).flatten(1).sum(1)).sqrt().clamp(min=1e-8)
+    return num / den
 
 
 def context_from_fixed(fixed: torch.Tensor, factor: int = 2, context_size: Sequence[int] | None = None
@@ -152,6 +176,14 @@ class ContextCorrelationNet(nn.Module):
             (``"bfloat16"``: about 30 % less CPU time per step where oneDNN has bfloat16 kernels, measured with
             one thread on the training machine); their features are cast back to float32 before any matching, so the
             cost volumes, sub-cell readout and fits stay float32. Inference always runs in float32.
+        coarse_units, coarse_norm: the coarse encoder's conv units per stage and norm (default: ``num_res_units``
+            and ``norm``). The CBCT's cells must find themselves among the context's, a volume twice as wide: with
+            two units per stage a cell's receptive field (about 140 mm) spans the whole 128 mm CBCT, and instance
+            norm's statistics differ between the two volumes; one unit (about 60 mm) and ``"NONE"`` keep the
+            features local and independent of the volume's extent
+            (``benchmarks/ablation/bench_coarse_consistency.py``).
+        coarse_start: where the local levels start in evaluation mode (:data:`COARSE_STARTS`); training always
+            starts them from the coarse level's estimate, which it supervises.
 
     Shapes:
         ``forward``: ``[B, 2 * C, x, y, z]`` (moving, fixed) or ``[B, 3 * C, ...]`` (moving, fixed, context: the
@@ -182,8 +214,14 @@ class ContextCorrelationNet(nn.Module):
         robust_sigma: float = 1.0,
         select_cells: int = 4096,
         train_autocast: str | None = None,
+        coarse_start: str = "coarse",
+        coarse_units: int | None = None,
+        coarse_norm: str | tuple | None = None,
     ) -> None:
         super().__init__()
+        if coarse_start not in COARSE_STARTS:
+            raise ValueError(f"coarse_start must be one of {COARSE_STARTS}, got {coarse_start!r}")
+        self.coarse_start = coarse_start
         self.in_channels = int(in_channels)
         self.grid_size = tuple(int(s) for s in grid_size)
         self.grid_spacing = tuple(float(s) for s in grid_spacing)
@@ -205,7 +243,9 @@ class ContextCorrelationNet(nn.Module):
         self.train_autocast = train_autocast
         c1, c2 = (int(c) for c in channels)
         self.encoder = _Encoder(self.in_channels, (c1, c2), (2, 2), num_res_units, norm)
-        self.coarse_encoder = _Encoder(self.in_channels, coarse_channels, (2, 2, 1), num_res_units, norm)
+        self.coarse_encoder = _Encoder(self.in_channels, coarse_channels, (2, 2, 1),
+                                       num_res_units if coarse_units is None else int(coarse_units),
+                                       norm if coarse_norm is None else coarse_norm)
         fc, f8, f4 = (int(f) for f in feat_channels)
         cc = int(coarse_channels[-1])
         self.coarse_project = nn.Conv3d(cc, fc, 1)
@@ -354,16 +394,33 @@ class ContextCorrelationNet(nn.Module):
         total, record = self._coarse(moving, context)
         levels = [matrix_to_params_torch(total).to(moving.dtype)]
         records = [record]
+        start = "coarse" if self.training else self.coarse_start
+        b = moving.shape[0]
+        if start == "identity":
+            total = torch.eye(4, dtype=total.dtype, device=total.device).expand_as(total).clone()
+        elif start == "both":  # both starts in one batch: [coarse estimates; identities]
+            total = torch.cat([total, torch.eye(4, dtype=total.dtype, device=total.device).expand_as(total)])
+            moving, fixed = moving.repeat(2, 1, 1, 1, 1), fixed.repeat(2, 1, 1, 1, 1)
+            fixed_weight = None if fixed_weight is None else fixed_weight.repeat(2, 1, 1, 1, 1)
         ff_feats = self._encode(self.encoder, fixed)
         ff = {8: self.project8(ff_feats[1]), 4: self._features4(ff_feats)}
+        finals = []
         for level, count in ((8, self.passes[0]), (4, self.passes[1])):
             for _ in range(count):
                 warped = warp_volume(moving, total.detach(), self.grid, self.grid)
                 correction, record = self._local(level, self._encode(self.encoder, warped), ff[level], total,
                                                  fixed_weight, fixed, warped)
                 total = total @ correction
-                levels.append(matrix_to_params_torch(total).to(moving.dtype))
+                finals.append(matrix_to_params_torch(total).to(moving.dtype))
                 records.append(record)
+        if start == "both":
+            # per sample, the start whose final estimate matches the images better (intensity NCC inside the warped
+            # CBCT's box; weight-free): the coarse level misleads the local levels on moderate motions that they
+            # capture from the identity (benchmarks/ablation/bench_levels_by_motion.py)
+            score = _warped_ncc(moving, fixed, total, self.grid)
+            pick = (score[b:] > score[:b]).to(moving.dtype)[:, None]
+            finals = [p[:b] * (1 - pick) + p[b:] * pick for p in finals]
+        levels += finals
         return (levels, records) if matches else levels
 
     def forward_pair(self, moving: torch.Tensor, fixed: torch.Tensor, context: torch.Tensor | None = None,

@@ -119,3 +119,27 @@ def test_resume_handler_starts_from_init_weights_unless_a_checkpoint_resumes(tmp
     assert torch.equal(src.weight, other.weight)
     with pytest.raises(FileNotFoundError, match="init_weights"):
         ResumeHandler(tmp_path, {"network": dst}, init_weights=tmp_path / "missing.pt")
+
+
+def test_resume_handler_partial_init_takes_only_matching_tensors(tmp_path):
+    """``init_partial``: the tensors whose names and shapes match are taken (also from a training checkpoint's
+    ``"network"``), the others keep their fresh values; strict loading refuses the same file; nothing matching is an
+    error."""
+    import torch
+    from ignite.engine import Engine
+
+    src = torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.Linear(2, 4))
+    dst = torch.nn.Sequential(torch.nn.Linear(3, 2), torch.nn.Linear(2, 5))  # the second layer changed shape
+    before = dst[1].weight.detach().clone()
+    torch.save({"network": src.state_dict(), "optimizer": {}}, tmp_path / "ckpt.pt")
+    ResumeHandler(tmp_path / "none", {"network": dst}, resume=False, init_weights=tmp_path / "ckpt.pt",
+                  init_partial=True).attach(Engine(lambda e, b: None))
+    assert torch.equal(dst[0].weight, src[0].weight) and torch.equal(dst[0].bias, src[0].bias)
+    assert torch.equal(dst[1].weight, before)
+    with pytest.raises(RuntimeError, match="size mismatch"):
+        ResumeHandler(tmp_path / "none", {"network": dst}, resume=False,
+                      init_weights=tmp_path / "ckpt.pt").attach(Engine(lambda e, b: None))
+    torch.save(torch.nn.Linear(7, 7).state_dict(), tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="no tensor matches"):
+        ResumeHandler(tmp_path / "none", {"network": torch.nn.Conv1d(1, 1, 3)}, resume=False,
+                      init_weights=tmp_path / "other.pt", init_partial=True).attach(Engine(lambda e, b: None))

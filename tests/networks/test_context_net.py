@@ -230,3 +230,44 @@ def test_training_autocast_leaves_inference_and_matching_in_float32():
     mixed.train()
     _, records = mixed.forward_levels(x, x.flip(3), matches=True)
     assert all(r["logits"].dtype == torch.float32 for r in records)
+
+
+def test_coarse_start_both_keeps_per_sample_the_start_that_matches_the_images_better(monkeypatch):
+    """``coarse_start``: with the local levels held still (each correction the identity), the estimate is the start.
+    Sample 0 has no motion, sample 1 moved +12 mm along x, and the coarse level says +12 mm for both: ``"coarse"``
+    keeps +12 mm for both, ``"identity"`` 0 for both, ``"both"`` the one that matches the images (0, then +12 mm);
+    training always starts from the coarse estimate."""
+    torch.manual_seed(0)
+    net = ContextCorrelationNet(grid_size=(32, 32, 32), grid_spacing=(4.0, 4.0, 4.0), channels=(4, 8),
+                                coarse_channels=(4, 8, 8), feat_channels=(8, 8, 4), select_cells=256)
+    g = torch.Generator().manual_seed(3)
+    x = torch.nn.functional.avg_pool3d(torch.rand(1, 1, 40, 40, 40, generator=g), 9, stride=1)[..., :32, :32, :32]
+    x = (x - x.min()) / (x.max() - x.min())
+    moving = torch.cat([x, torch.roll(x, 3, dims=2)])  # moving(y) = fixed(y - 12 mm) in sample 1
+    fixed = torch.cat([x, x])
+    shift = params_to_matrix_torch(torch.tensor([[12.0, 0, 0, 0, 0, 0]] * 2, dtype=torch.float64))
+
+    def coarse(m, c):
+        return shift.clone(), {"kind": "global"}
+
+    def still(level, fm_feats, ff, total, fixed_weight, fixed_, warped):
+        return torch.eye(4, dtype=torch.float64).expand(warped.shape[0], 4, 4).clone(), {"kind": "local"}
+
+    monkeypatch.setattr(net, "_coarse", coarse)
+    monkeypatch.setattr(net, "_local", still)
+    expected = {"coarse": [12.0, 12.0], "identity": [0.0, 0.0], "both": [0.0, 12.0]}
+    net.eval()
+    for start, tx in expected.items():
+        net.coarse_start = start
+        with torch.no_grad():
+            out = net.forward_pair(moving, fixed)
+        assert out.shape == (2, 6)
+        torch.testing.assert_close(out[:, 0].double(), torch.tensor(tx, dtype=torch.float64), atol=1e-4, rtol=0)
+        assert float(out[:, 1:].abs().max()) < 1e-4
+    net.train()
+    net.coarse_start = "both"
+    out = net.forward_pair(moving, fixed)
+    torch.testing.assert_close(out[:, 0].detach().double(), torch.tensor([12.0, 12.0], dtype=torch.float64),
+                               atol=1e-4, rtol=0)
+    with pytest.raises(ValueError, match="coarse_start"):
+        ContextCorrelationNet(grid_size=(32, 32, 32), grid_spacing=(4.0, 4.0, 4.0), coarse_start="search")
