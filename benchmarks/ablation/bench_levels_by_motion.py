@@ -30,6 +30,7 @@ BANDS = {  # name: (max translation mm, max rotation deg, min translation mm)
     "moderate (40 mm, 30 deg)": (40.0, 30.0, 0.0),
     "large (30-60 mm, 45 deg)": (60.0, 45.0, 30.0),
     "paper-like (15 mm, 5 deg)": (15.0, 5.0, 0.0),
+    "between (25 mm, 15 deg)": (25.0, 15.0, 0.0),
 }
 TRAIN_CTS = ("abdomen_pelvis_totalsegmentator_example_ct", "head_tcia_cptac_lscc_ct", "thorax_tcia_cptac_pda_ct",
              "abdomen_pelvis_tcia_tcga_ov_ct")
@@ -43,6 +44,10 @@ def main() -> None:
     ap.add_argument("--samples", type=int, default=8, help="pairs per band (default 8)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=123)
+    ap.add_argument("--passes", type=int, nargs=2, default=None,
+                    help="passes of the 8 mm and 4 mm levels (default: the train config's; inference uses 2 1)")
+    ap.add_argument("--coarse-start", choices=("coarse", "identity", "both"), default="coarse",
+                    help="where the local levels start (ContextCorrelationNet's coarse_start)")
     ap.add_argument("--results", type=Path, default=None)
     args = ap.parse_args()
     out = Tee()
@@ -65,6 +70,9 @@ def main() -> None:
     state = torch.load(args.checkpoint, map_location="cpu", weights_only=True)
     net.load_state_dict(state.get("network", state))
     net.eval()
+    net.regression.coarse_start = args.coarse_start
+    if args.passes is not None:
+        net.regression.passes = tuple(args.passes)
     size = tuple(parser["network_size"])
     spacing = tuple(float(s) for s in parser["network_spacing"])
     factor = int(parser["context_factor"])
@@ -75,7 +83,8 @@ def main() -> None:
                            context_spacing=spacing[0] * factor, isocenter_max=float(parser["isocenter_max"]))
     grid = canonical_grid(size, spacing)
     sup = RigidRegistrationLoss(w_ssim=0.0, w_ncc=0.0, w_mi=0.0, w_grad=0.0, w_sup=1.0, w_reg=0.0)
-    out(f"sources: {len(sources)} ({len(datalists)} datalists, {len(cts)} CTs); {args.samples} samples per band\n")
+    out(f"sources: {len(sources)} ({len(datalists)} datalists, {len(cts)} CTs); {args.samples} samples per band; "
+        f"passes {net.regression.passes}; local levels start from: {args.coarse_start}\n")
     out("| band | level | point distance mean (mm) | median | share < 2 mm | match loss (nats) |")
     out("|---|---|---|---|---|---|")
     record: dict[str, Any] = {}
@@ -86,6 +95,7 @@ def main() -> None:
         it = iter(sampler)
         dists: list[list[float]] = []
         nats: list[list[float]] = []
+        ident: list[float] = []
         for _ in range(args.samples):
             s = next(it)
             moving, fixed, context = (s[k][None].float() for k in ("moving", "fixed", "context"))
@@ -95,11 +105,17 @@ def main() -> None:
             with torch.no_grad():
                 levels, records = net.regression.forward_levels(moving, fixed, context, matches=True)
             dists.append([float(sup.sup_term(p.float(), truth, grid)) for p in levels])
+            ident.append(float(sup.sup_term(torch.zeros_like(truth), truth, grid)))
             m = params_to_matrix_torch(truth.to(torch.float64))
-            nats.append([float(match_loss(r, m)) for r in records])
+            # with both starts the local levels' records hold the doubled batch: their match loss is not read
+            nats.append([float(match_loss(r, m)) if i == 0 or args.coarse_start != "both" else float("nan")
+                         for i, r in enumerate(records)])
         d = np.asarray(dists)
+        d0 = np.asarray(ident)
         n = np.asarray(nats)
         record[name] = {"point_distance_mm": d.tolist(), "match_nats": n.tolist()}
+        out(f"| {name} | identity (no estimate) | {d0.mean():.2f} | {np.median(d0):.2f} | "
+            f"{(d0 < 2.0).mean():.2f} | - |")
         for j in range(d.shape[1]):
             nat = f"{n[:, j].mean():.2f}" if j < n.shape[1] else "-"
             out(f"| {name} | {'coarse' if j == 0 else f'pass {j}'} | {d[:, j].mean():.2f} | "

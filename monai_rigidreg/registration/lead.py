@@ -7,9 +7,9 @@ and the last level polishes it. :class:`LeadPath` (a stage group of
 :class:`~monai_rigidreg.registration.RigidRegistrar`) runs, in order:
 
 1. the network from the identity (``_run_identity``, :mod:`~monai_rigidreg.registration.network_run`);
-2. the last level from its estimate (``_last_level``, :mod:`~monai_rigidreg.registration.last_level`), with the
-   swapped-input estimate beside it (in a worker thread, as on the thorough path: the calibrated confidence,
-   :mod:`~monai_rigidreg.registration.calibration`, was fitted with it);
+2. the last level from its estimate (``_last_level``, :mod:`~monai_rigidreg.registration.last_level`), without the
+   swapped-input estimate (the calibrated confidence, :mod:`~monai_rigidreg.registration.calibration`, reads only
+   the cheap signals: on 305 held-out cases it caught as many default-path failures without it, ``docs/trust.md``);
 3. the check (:meth:`LeadPath._lead_check`): the confidence's cheap signals (the edge test, ``tissue_on_air`` and,
    with ``--roi``, the region's block check; :func:`~monai_rigidreg.registration.confidence.confidence_score`
    without the swap term), the share of the CBCT's field of view that the estimate places inside the CT
@@ -18,14 +18,15 @@ and the last level polishes it. :class:`LeadPath` (a stage group of
 4. only where the check fails, the fallback (:meth:`LeadPath._fallback`): the global search and the network from
    its candidates (:class:`~monai_rigidreg.registration.search.StartChoice`, the winner by image match), the last
    level again if another start won, and the full confidence with the swapped-input estimate (which may replace the
-   estimate, :data:`~monai_rigidreg.registration.confidence.SWAP_AGREE_MM`).
+   estimate, :data:`~monai_rigidreg.registration.confidence.SWAP_AGREE_MM`, and whose disagreement lowers the rule
+   score).
 
 ``details["path"]`` says which path ran (``"network-led"`` or ``"thorough"``), ``details["lead_check"]`` holds the
 check's numbers and ``details["fallback"]`` whether the fallback ran and why (``reasons``: ``"confidence"``,
-``"overlap"``, ``"polish"``, ``"range"``). Without the fallback the result's confidence is the full, calibrated one
-(stage 8, :meth:`~monai_rigidreg.registration.confidence.ConfidenceStage._assess`, with the swapped-input estimate
-made beside the last level), as on the thorough path. The thresholds below were measured with ``python -m
-benchmarks.accuracy.bench_lead_check`` (``docs/results.md``, "The network leads").
+``"overlap"``, ``"polish"``, ``"range"``). Without the fallback the result's confidence is the calibrated one from
+the check's own signals (stage 8, :meth:`~monai_rigidreg.registration.confidence.ConfidenceStage._assess` with
+``cheap``: computed once), the same model as on the thorough path. The thresholds below were measured with ``python
+-m benchmarks.accuracy.bench_lead_check`` (``docs/results.md``, "The network leads").
 """
 
 from __future__ import annotations
