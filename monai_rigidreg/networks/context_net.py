@@ -77,8 +77,7 @@ def robust_rigid_fit(points_fixed: torch.Tensor, points_moving: torch.Tensor, we
 
 COARSE_STARTS = ("coarse", "identity", "both")
 """Where :class:`ContextCorrelationNet`'s local levels start at inference: the coarse level's estimate (as trained),
-the identity (the coarse level skipped), or both, per sample the one whose final estimate matches the images better
-(:func:`_warped_ncc`)."""
+the identity, or both, per sample the one whose final estimate matches the images better (:func:`_warped_ncc`)."""
 
 
 def _warped_ncc(moving: torch.Tensor, fixed: torch.Tensor, matrix: torch.Tensor, grid: Grid) -> torch.Tensor:

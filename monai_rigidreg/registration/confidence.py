@@ -369,19 +369,16 @@ class ConfidenceStage:
         """Stage 8, with ``assess``: :meth:`_confidence`, the overlap under the final estimate (``_overlap_report``)
         and the verdict (:func:`~monai_rigidreg.registration.calibration.verdict`): the calibrated confidence and
         ``details.flag_reasons``; inputs not in HU or that look swapped (unless allowed) get confidence 0.
-        ``swap=False, record=False``: the cheap signals only, not recorded (the network-led path's check): their
-        ``confidence`` is the uncalibrated rule score. ``swap=False, cheap=signals``: those cheap signals of the
-        current estimate (an earlier ``record=False`` call's) recorded with the verdict, not computed again.
-        Returns the signals (``None`` where the call does not assess)."""
+        ``swap=False, record=False``: the cheap signals only, not recorded (the network-led path's check; their
+        ``confidence`` is the rule score); ``swap=False, cheap=``: such signals of this estimate recorded, not
+        computed again. Returns the signals (``None`` where the call does not assess)."""
         options, timings, details = state.options, state.timings, state.details
         if record and not options.assess:
             return None
         t = time.perf_counter()
         if cheap is not None and not swap:
             replaced, signals = False, {k: v for k, v in cheap.items() if k != "seconds"}
-        else:
-            # the region check looks at the ROI itself (with --match bone too: the blocks need the soft tissue
-            # around the bone to match, and the box's layout of blocks)
+        else:  # the region check looks at the ROI itself (with --match bone too: its blocks need the soft tissue)
             roi = options.roi
             roi_img = None if roi is None else state.weight_img if options.match == "soft" else match_weight(
                 state.inputs.fixed, roi)
@@ -403,19 +400,15 @@ class ConfidenceStage:
             signals["overlap"] = overlap
         if state.inputs.not_hu:
             signals["not_hu"] = state.inputs.not_hu
+        signals["swapped"] = bool(state.inputs.swapped)
         if state.inputs.swapped:
-            signals["swapped"] = True
-            signals["swapped_because"] = list(state.inputs.swapped)
-            signals["swap_allowed"] = bool(options.allow_swapped)
-        else:
-            signals["swapped"] = False
+            signals.update(swapped_because=list(state.inputs.swapped), swap_allowed=bool(options.allow_swapped))
         calibration = getattr(self, "calibration", None)
         state.confidence, reasons = verdict(signals, calibration, CONFIDENCE_THRESHOLD, OVERLAP_FLAG_BELOW)
         state.flagged = bool(reasons)
         timings["confidence"] = time.perf_counter() - t
-        details["signals"] = signals
-        details["flag_reasons"] = reasons
-        details["confidence_calibration"] = None if calibration is None else calibration.record()
+        details.update(signals=signals, flag_reasons=reasons,
+                       confidence_calibration=None if calibration is None else calibration.record())
         if state.flagged:
             logger.warning("registration flagged as a likely failure (confidence %.2f; %s): check the QC figure",
                            state.confidence, ", ".join(FLAG_REASON_TEXT[r] for r in reasons))

@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from monai_rigidreg.registration.state import RegistrationState
 
 __all__ = ["CT_EDGE_MARGIN_MM", "OVERLAP_WEIGHTED_BELOW", "OVERLAP_FLAG_BELOW", "TISSUE_HU", "MIN_TISSUE_SHARE",
+           "FOV_SAMPLE_MAX_POINTS",
            "FovSample", "fov_sample", "overlap_shares", "ct_domain_weight", "OverlapStage"]
 
 CT_EDGE_MARGIN_MM = 8.0
@@ -58,6 +59,12 @@ MIN_TISSUE_SHARE = 0.002
 """A CBCT whose field of view holds less than this share of tissue voxels is refused: nothing to register."""
 
 
+FOV_SAMPLE_MAX_POINTS = 20000
+"""At most this many samples of the field of view are kept (a share's sampling error stays under about 0.4 %, for
+the 99 % test of :data:`OVERLAP_WEIGHTED_BELOW` under 0.1 %): a 128^3 CBCT at 1.5 mm (block-averaged to 3 mm) gave
+208 000, and each overlap share then cost 0.1-0.17 s (three per registration)."""
+
+
 @dataclass
 class FovSample:
     """The CBCT's field of view sampled at about 4 mm: ``points`` ``[N, 3]`` (LPS mm, CBCT frame) and ``tissue``
@@ -74,7 +81,8 @@ class FovSample:
 
 def fov_sample(moving: sitk.Image, fov: sitk.Image, spacing_mm: float = 4.0) -> FovSample:
     """:class:`FovSample` of ``moving`` (HU) inside ``fov`` (its field-of-view mask on its grid), block-averaged by
-    integer factors to about ``spacing_mm`` (``BinShrink``)."""
+    integer factors to about ``spacing_mm`` (``BinShrink``), then every k-th sample in raster order so that at most
+    :data:`FOV_SAMPLE_MAX_POINTS` remain."""
     factors = [max(1, int(spacing_mm / s + 1e-6)) for s in moving.GetSpacing()]
     small = sitk.BinShrink(sitk.Cast(moving, sitk.sitkFloat32), factors) if max(factors) > 1 else moving
     fov_small = sitk.BinShrink(sitk.Cast(fov != 0, sitk.sitkFloat32), factors) if max(factors) > 1 else sitk.Cast(
@@ -82,8 +90,11 @@ def fov_sample(moving: sitk.Image, fov: sitk.Image, spacing_mm: float = 4.0) -> 
     values = sitk.GetArrayViewFromImage(small)  # [z, y, x]
     inside = sitk.GetArrayViewFromImage(fov_small) >= 0.5
     idx = np.argwhere(inside)[:, ::-1].astype(np.float64)  # (i, j, k)
+    tissue = values[inside] > TISSUE_HU
+    stride = max(1, -(-len(idx) // FOV_SAMPLE_MAX_POINTS))  # every stride-th sample in raster order
+    idx, tissue = idx[::stride], tissue[::stride]
     points = transform_points(Grid.from_sitk(small).index_to_physical(), idx) if len(idx) else np.zeros((0, 3))
-    return FovSample(points, values[inside] > TISSUE_HU)
+    return FovSample(points, tissue)
 
 
 def _inside_box(fixed_grid: Grid, points: np.ndarray, margin_mm: float) -> np.ndarray:
