@@ -176,11 +176,9 @@ class ContextCorrelationNet(nn.Module):
             one thread on the training machine); their features are cast back to float32 before any matching, so the
             cost volumes, sub-cell readout and fits stay float32. Inference always runs in float32.
         coarse_units, coarse_norm: the coarse encoder's conv units per stage and norm (default: ``num_res_units``
-            and ``norm``). The CBCT's cells must find themselves among the context's, a volume twice as wide: with
-            two units per stage a cell's receptive field (about 140 mm) spans the whole 128 mm CBCT, and instance
-            norm's statistics differ between the two volumes; one unit (about 60 mm) and ``"NONE"`` keep the
-            features local and independent of the volume's extent
-            (``benchmarks/ablation/bench_coarse_consistency.py``).
+            and ``norm``). One unit (a 60 mm receptive field, not 140 mm) and ``"NONE"`` make an untrained CBCT
+            cell's features more like its context cell's (``benchmarks/ablation/bench_coarse_consistency.py``) but
+            learn the match more slowly (``bench_coarse_learnability.py``): the defaults are kept in training.
         coarse_start: where the local levels start in evaluation mode (:data:`COARSE_STARTS`); training always
             starts them from the coarse level's estimate, which it supervises.
 
