@@ -17,15 +17,11 @@ Samples are the training stream's CT contexts (training CTs; a diagnosis, not an
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from benchmarks.bench_common import Tee, end_run, script_parser, start_run
-
-TRAIN_CTS = ("abdomen_pelvis_totalsegmentator_example_ct", "head_tcia_cptac_lscc_ct", "thorax_tcia_cptac_pda_ct",
-             "abdomen_pelvis_tcia_tcga_ov_ct")
 
 
 def main() -> None:
@@ -45,22 +41,14 @@ def main() -> None:
                             str(args.checkpoint or "freshly initialised"))
     import torch
     import torch.nn.functional as F
-    from monai.bundle import ConfigParser
     from torch import nn
 
-    from monai_rigidreg.engine import RigidPairSampler, load_sources
+    from benchmarks.ablation.context_setup import sampler_sources, train_config
+    from monai_rigidreg.engine import RigidPairSampler
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    parser = ConfigParser()
-    parser.read_config(["bundles/cbct_ct_rigid/configs/train.json", "bundles/cbct_ct_rigid/configs/train_context.json"])
-    for item in args.set:
-        key, _, value = item.partition("=")
-        try:
-            parsed = json.loads(value)
-        except json.JSONDecodeError:
-            parsed = value
-        parser[f"network_def#regression#{key}"] = parsed
+    parser = train_config(args.set)
     net = parser.get_parsed_content("network_def")
     if args.checkpoint is not None:
         state = torch.load(args.checkpoint, map_location="cpu", weights_only=True)
@@ -83,13 +71,7 @@ def main() -> None:
     def feats(x: torch.Tensor) -> torch.Tensor:
         return F.normalize(r.coarse_project(r.coarse_encoder(x)[-1]), dim=1)
 
-    size = tuple(parser["network_size"])
-    spacing = tuple(float(s) for s in parser["network_spacing"])
-    factor = int(parser["context_factor"])
-    cts = [str(args.shared / f"{n}.nii.gz") for n in TRAIN_CTS if (args.shared / f"{n}.nii.gz").is_file()]
-    datalists = [str(p) for p in (args.data / "train.json",) if p.is_file()]
-    sources = load_sources(datalists=datalists, cts=cts, network_spacing=spacing[0],
-                           context_spacing=spacing[0] * factor, isocenter_max=float(parser["isocenter_max"]))
+    sources, size, spacing, factor = sampler_sources(parser, args.data, args.shared)
     it = iter(RigidPairSampler(sources, size, spacing, context_factor=factor, seed=args.seed))
     n_ctx = [s // 4 for s in r.context_size]
     lo = [s // 4 for s in r.context_size]  # context voxels 16..48 of 64: the crop

@@ -17,16 +17,12 @@ are not used.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
 from benchmarks.bench_common import Tee, end_run, script_parser, start_run
-
-TRAIN_CTS = ("abdomen_pelvis_totalsegmentator_example_ct", "head_tcia_cptac_lscc_ct", "thorax_tcia_cptac_pda_ct",
-             "abdomen_pelvis_tcia_tcga_ov_ct")
 
 
 def main() -> None:
@@ -50,23 +46,15 @@ def main() -> None:
     monitor, t0 = start_run(out, __spec__.name if __spec__ else "bench_coarse_learnability", args.threads, "cpu",
                             str(args.init or "freshly initialised"))
     import torch
-    from monai.bundle import ConfigParser
 
-    from monai_rigidreg.engine import RigidPairSampler, load_sources
+    from benchmarks.ablation.context_setup import sampler_sources, train_config
+    from monai_rigidreg.engine import RigidPairSampler
     from monai_rigidreg.engine.coarse_pretrain import coarse_parameters, coarse_step
     from monai_rigidreg.engine.sampler import MotionRange
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
-    parser = ConfigParser()
-    parser.read_config(["bundles/cbct_ct_rigid/configs/train.json", "bundles/cbct_ct_rigid/configs/train_context.json"])
-    for item in args.set:
-        key, _, value = item.partition("=")
-        try:
-            parsed = json.loads(value)
-        except json.JSONDecodeError:
-            parsed = value
-        parser[f"network_def#regression#{key}"] = parsed
+    parser = train_config(args.set)
     net = parser.get_parsed_content("network_def").regression
     if args.init is not None:
         state = torch.load(args.init, map_location="cpu", weights_only=True)
@@ -77,13 +65,7 @@ def main() -> None:
     net.train()
     params = coarse_parameters(net)
     opt = torch.optim.Adam(params, lr=args.lr)
-    size = tuple(parser["network_size"])
-    spacing = tuple(float(s) for s in parser["network_spacing"])
-    factor = int(parser["context_factor"])
-    cts = [str(args.shared / f"{n}.nii.gz") for n in TRAIN_CTS if (args.shared / f"{n}.nii.gz").is_file()]
-    datalists = [str(p) for p in (args.data / "train.json",) if p.is_file()]
-    sources = load_sources(datalists=datalists, cts=cts, network_spacing=spacing[0],
-                           context_spacing=spacing[0] * factor, isocenter_max=float(parser["isocenter_max"]))
+    sources, size, spacing, factor = sampler_sources(parser, args.data, args.shared)
     band = MotionRange(float(args.band[0]), float(args.band[1]))
     it = iter(RigidPairSampler(sources, size, spacing, context_factor=factor, motions=(band,), case_motions=(band,),
                                seed=args.seed))

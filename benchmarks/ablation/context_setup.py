@@ -1,0 +1,46 @@
+"""What the context network's ablation scripts share: the train config with ``--set`` overrides of the network, and
+the training sampler's sources (the training data and CTs of ``scripts/train_context_model.sh``)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+TRAIN_CTS = ("abdomen_pelvis_totalsegmentator_example_ct", "head_tcia_cptac_lscc_ct", "thorax_tcia_cptac_pda_ct",
+             "abdomen_pelvis_tcia_tcga_ov_ct")
+CONFIGS = ["bundles/cbct_ct_rigid/configs/train.json", "bundles/cbct_ct_rigid/configs/train_context.json"]
+
+
+def train_config(overrides: Sequence[str] = ()) -> Any:
+    """The bundle's train config (``train.json`` + ``train_context.json``) with ``KEY=VALUE`` overrides of the
+    regression network's arguments (the value as JSON where it parses, else a string)."""
+    from monai.bundle import ConfigParser
+
+    parser = ConfigParser()
+    parser.read_config(CONFIGS)
+    for item in overrides:
+        key, _, value = item.partition("=")
+        try:
+            parsed = json.loads(value)
+        except json.JSONDecodeError:
+            parsed = value
+        parser[f"network_def#regression#{key}"] = parsed
+    return parser
+
+
+def sampler_sources(parser: Any, data: Path, shared: Path) -> tuple[list[Any], tuple[int, ...], tuple[float, ...],
+                                                                    int]:
+    """``(sources, network size, network spacing, context factor)`` for a
+    :class:`~monai_rigidreg.engine.RigidPairSampler` over ``data/train.json`` and the training CTs in ``shared``."""
+    from monai_rigidreg.engine import load_sources
+
+    size = tuple(int(s) for s in parser["network_size"])
+    spacing = tuple(float(s) for s in parser["network_spacing"])
+    factor = int(parser["context_factor"])
+    cts = [str(shared / f"{n}.nii.gz") for n in TRAIN_CTS if (shared / f"{n}.nii.gz").is_file()]
+    datalists = [str(p) for p in (data / "train.json",) if p.is_file()]
+    sources = load_sources(datalists=datalists, cts=cts, network_spacing=spacing[0],
+                           context_spacing=spacing[0] * factor, isocenter_max=float(parser["isocenter_max"]))
+    return sources, size, spacing, factor
