@@ -20,6 +20,8 @@ from pathlib import Path
 
 import torch
 
+from monai_rigidreg.networks.context_net import COARSE_STARTS
+
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "bundles" / "cbct_ct_rigid"
 
@@ -29,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("checkpoint", type=Path, help="a training checkpoint (with 'network') or a model.pt state dict")
     ap.add_argument("output", type=Path, help="the bundle folder to write (replaced if it holds an earlier export)")
     ap.add_argument("--passes", type=int, nargs=2, default=[2, 1], help="inference passes of the 8 mm and 4 mm levels")
-    ap.add_argument("--coarse-start", choices=("coarse", "identity", "both"), default="coarse",
+    ap.add_argument("--coarse-start", choices=COARSE_STARTS, default="coarse",
                     help="where the local levels start at inference (ContextCorrelationNet's coarse_start)")
     args = ap.parse_args(argv)
     state = torch.load(args.checkpoint, map_location="cpu", weights_only=True)

@@ -57,6 +57,7 @@ def main() -> int:
 
     from monai_rigidreg.engine import RigidPairSampler, load_sources
     from monai_rigidreg.engine.coarse_pretrain import pretrain_coarse
+    from monai_rigidreg.engine.handlers import load_matching_weights
     from monai_rigidreg.engine.sampler import MotionRange
 
     torch.set_num_threads(args.threads)
@@ -65,12 +66,8 @@ def main() -> int:
     parser.read_config(["bundles/cbct_ct_rigid/configs/train.json", "bundles/cbct_ct_rigid/configs/train_context.json"])
     model = parser.get_parsed_content("network_def")
     if args.init is not None:
-        state = torch.load(args.init, map_location="cpu", weights_only=True)
-        state = state.get("network", state)
-        own = model.state_dict()
-        taken = {k: v for k, v in state.items() if k in own and own[k].shape == v.shape}
-        model.load_state_dict(taken, strict=False)
-        logging.info("started from %s: %d of %d tensors", args.init, len(taken), len(own))
+        taken, fresh, _ = load_matching_weights(model, torch.load(args.init, map_location="cpu", weights_only=True))
+        logging.info("started from %s: %d of %d tensors", args.init, len(taken), len(taken) + len(fresh))
     size = tuple(parser["network_size"])
     spacing = tuple(float(s) for s in parser["network_spacing"])
     factor = int(parser["context_factor"])

@@ -50,18 +50,16 @@ def main() -> None:
     from benchmarks.ablation.context_setup import sampler_sources, train_config
     from monai_rigidreg.engine import RigidPairSampler
     from monai_rigidreg.engine.coarse_pretrain import coarse_parameters, coarse_step
+    from monai_rigidreg.engine.handlers import load_matching_weights
     from monai_rigidreg.engine.sampler import MotionRange
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
     parser = train_config(args.set)
-    net = parser.get_parsed_content("network_def").regression
+    model = parser.get_parsed_content("network_def")
     if args.init is not None:
-        state = torch.load(args.init, map_location="cpu", weights_only=True)
-        state = state.get("network", state)
-        state = {k.removeprefix("regression."): v for k, v in state.items()}
-        own = net.state_dict()
-        net.load_state_dict({k: v for k, v in state.items() if k in own and own[k].shape == v.shape}, strict=False)
+        load_matching_weights(model, torch.load(args.init, map_location="cpu", weights_only=True))
+    net = model.regression
     net.train()
     params = coarse_parameters(net)
     opt = torch.optim.Adam(params, lr=args.lr)

@@ -32,11 +32,12 @@ BANDS = {  # name: (max translation mm, max rotation deg, min translation mm)
     "paper-like (15 mm, 5 deg)": (15.0, 5.0, 0.0),
     "between (25 mm, 15 deg)": (25.0, 15.0, 0.0),
 }
-TRAIN_CTS = ("abdomen_pelvis_totalsegmentator_example_ct", "head_tcia_cptac_lscc_ct", "thorax_tcia_cptac_pda_ct",
-             "abdomen_pelvis_tcia_tcga_ov_ct")
+TRAINING_LISTS = ("train.json", "clinical/dataset.json")
 
 
 def main() -> None:
+    from monai_rigidreg.networks.context_net import COARSE_STARTS
+
     ap = script_parser(__doc__)
     ap.add_argument("checkpoint", type=Path, help="a training checkpoint (checkpoint_*epoch=N.pt) or model.pt")
     ap.add_argument("--data", type=Path, default=Path("data"), help="the training data folder (train.json, clinical/)")
@@ -46,7 +47,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=123)
     ap.add_argument("--passes", type=int, nargs=2, default=None,
                     help="passes of the 8 mm and 4 mm levels (default: the train config's; inference uses 2 1)")
-    ap.add_argument("--coarse-start", choices=("coarse", "identity", "both"), default="coarse",
+    ap.add_argument("--coarse-start", choices=COARSE_STARTS, default="coarse",
                     help="where the local levels start (ContextCorrelationNet's coarse_start)")
     ap.add_argument("--results", type=Path, default=None)
     args = ap.parse_args()
@@ -54,18 +55,17 @@ def main() -> None:
     monitor, t0 = start_run(out, __spec__.name if __spec__ else "bench_levels_by_motion", args.threads, "cpu",
                             str(args.checkpoint))
     import torch
-    from monai.bundle import ConfigParser
 
+    from benchmarks.ablation.context_setup import TRAIN_CTS, sampler_sources, train_config
     from monai_rigidreg.core.geometry import params_to_matrix_torch
-    from monai_rigidreg.engine import RigidPairSampler, load_sources
+    from monai_rigidreg.engine import RigidPairSampler
     from monai_rigidreg.engine.criterion import canonical_grid
     from monai_rigidreg.engine.sampler import MotionRange
     from monai_rigidreg.losses import RigidRegistrationLoss, match_loss
     from monai_rigidreg.transforms import RIGID_KEY
 
     torch.set_num_threads(args.threads)
-    parser = ConfigParser()
-    parser.read_config(["bundles/cbct_ct_rigid/configs/train.json", "bundles/cbct_ct_rigid/configs/train_context.json"])
+    parser = train_config()
     net = parser.get_parsed_content("network_def")
     state = torch.load(args.checkpoint, map_location="cpu", weights_only=True)
     net.load_state_dict(state.get("network", state))
@@ -73,17 +73,12 @@ def main() -> None:
     net.regression.coarse_start = args.coarse_start
     if args.passes is not None:
         net.regression.passes = tuple(args.passes)
-    size = tuple(parser["network_size"])
-    spacing = tuple(float(s) for s in parser["network_spacing"])
-    factor = int(parser["context_factor"])
-    datalists = [str(args.data / "train.json"), str(args.data / "clinical" / "dataset.json")]
-    datalists = [d for d in datalists if Path(d).is_file()]
-    cts = [str(args.shared / f"{n}.nii.gz") for n in TRAIN_CTS if (args.shared / f"{n}.nii.gz").is_file()]
-    sources = load_sources(datalists=datalists, cts=cts, network_spacing=spacing[0],
-                           context_spacing=spacing[0] * factor, isocenter_max=float(parser["isocenter_max"]))
+    sources, size, spacing, factor = sampler_sources(parser, args.data, args.shared, TRAINING_LISTS)
+    n_lists = sum((args.data / name).is_file() for name in TRAINING_LISTS)
+    n_cts = sum((args.shared / f"{n}.nii.gz").is_file() for n in TRAIN_CTS)
     grid = canonical_grid(size, spacing)
     sup = RigidRegistrationLoss(w_ssim=0.0, w_ncc=0.0, w_mi=0.0, w_grad=0.0, w_sup=1.0, w_reg=0.0)
-    out(f"sources: {len(sources)} ({len(datalists)} datalists, {len(cts)} CTs); {args.samples} samples per band; "
+    out(f"sources: {len(sources)} ({n_lists} datalists, {n_cts} CTs); {args.samples} samples per band; "
         f"passes {net.regression.passes}; local levels start from: {args.coarse_start}\n")
     out("| band | level | point distance mean (mm) | median | share < 2 mm | match loss (nats) |")
     out("|---|---|---|---|---|---|")

@@ -30,17 +30,18 @@ def train_config(overrides: Sequence[str] = ()) -> Any:
     return parser
 
 
-def sampler_sources(parser: Any, data: Path, shared: Path) -> tuple[list[Any], tuple[int, ...], tuple[float, ...],
-                                                                    int]:
+def sampler_sources(parser: Any, data: Path, shared: Path, lists: Sequence[str] = ("train.json",)
+                    ) -> tuple[list[Any], tuple[int, ...], tuple[float, ...], int]:
     """``(sources, network size, network spacing, context factor)`` for a
-    :class:`~monai_rigidreg.engine.RigidPairSampler` over ``data/train.json`` and the training CTs in ``shared``."""
+    :class:`~monai_rigidreg.engine.RigidPairSampler` over the datalists ``lists`` in ``data`` (those that exist) and
+    the training CTs in ``shared``."""
     from monai_rigidreg.engine import load_sources
 
     size = tuple(int(s) for s in parser["network_size"])
     spacing = tuple(float(s) for s in parser["network_spacing"])
     factor = int(parser["context_factor"])
     cts = [str(shared / f"{n}.nii.gz") for n in TRAIN_CTS if (shared / f"{n}.nii.gz").is_file()]
-    datalists = [str(p) for p in (data / "train.json",) if p.is_file()]
+    datalists = [str(data / name) for name in lists if (data / name).is_file()]
     sources = load_sources(datalists=datalists, cts=cts, network_spacing=spacing[0],
                            context_spacing=spacing[0] * factor, isocenter_max=float(parser["isocenter_max"]))
     return sources, size, spacing, factor

@@ -17,6 +17,7 @@ from monai.handlers import CheckpointLoader, CheckpointSaver, TensorBoardStatsHa
 from monai_rigidreg.core.geometry import PARAM_NAMES
 
 __all__ = [
+    "load_matching_weights",
     "LossTermsHandler",
     "TrainingCurveHandler",
     "ResumeHandler",
@@ -244,6 +245,22 @@ class TrainingProgressHandler:
         self._reset()
 
 
+def load_matching_weights(network: Any, state: dict[str, Any]) -> tuple[list[str], list[str], list[str]]:
+    """Load into ``network`` the tensors of ``state`` (a state dict, or a training checkpoint with ``"network"``)
+    whose names and shapes it has; the others keep their values.
+
+    Returns ``(taken, fresh, unused)``: the names loaded, the network's names not loaded, the state's names not used
+    (each sorted). Raises ``ValueError`` when nothing matches."""
+    if isinstance(state.get("network"), dict):
+        state = state["network"]
+    own = network.state_dict()
+    taken = {k: v for k, v in state.items() if k in own and tuple(own[k].shape) == tuple(v.shape)}
+    if not taken:
+        raise ValueError("no tensor matches the network's names and shapes")
+    network.load_state_dict(taken, strict=False)
+    return sorted(taken), sorted(k for k in own if k not in taken), sorted(k for k in state if k not in taken)
+
+
 class ResumeHandler:
     """Resume training from the newest ``checkpoint_epoch=N.pt`` in ``ckpt_dir`` (written by MONAI's
     ``CheckpointSaver`` with ``save_interval``), when ``resume`` is true and one exists; otherwise start from
@@ -289,16 +306,13 @@ class ResumeHandler:
             network.load_state_dict(state)
             logger.info("network initialised from %s (optimizer and schedule start afresh)", self.init_weights)
             return
-        own = network.state_dict()
-        taken = {k: v for k, v in state.items() if k in own and tuple(own[k].shape) == tuple(v.shape)}
-        if not taken:
-            raise ValueError(f"init_weights {self.init_weights}: no tensor matches the network's names and shapes")
-        network.load_state_dict(taken, strict=False)
-        fresh = sorted(k for k in own if k not in taken)
-        unused = sorted(k for k in state if k not in taken)
+        try:
+            taken, fresh, unused = load_matching_weights(network, state)
+        except ValueError as exc:
+            raise ValueError(f"init_weights {self.init_weights}: {exc}") from None
         logger.info("network initialised in part from %s: %d of %d tensors taken; freshly initialised: %s; "
-                    "not used: %s (optimizer and schedule start afresh)", self.init_weights, len(taken), len(own),
-                    ", ".join(fresh) or "none", ", ".join(unused) or "none")
+                    "not used: %s (optimizer and schedule start afresh)", self.init_weights, len(taken),
+                    len(taken) + len(fresh), ", ".join(fresh) or "none", ", ".join(unused) or "none")
 
     def latest(self) -> Path | None:
         """The newest epoch checkpoint, or ``None``."""

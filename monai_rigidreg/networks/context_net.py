@@ -42,6 +42,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from monai_rigidreg.core.geometry import Grid, matrix_to_params_torch
+from monai_rigidreg.core.image_ops import masked_ncc
 from monai_rigidreg.core.warp import warp_volume
 from monai_rigidreg.networks.blocks import ResidualStage3d
 from monai_rigidreg.networks.correlation_net import local_cost_volume, weighted_rigid_fit
@@ -83,18 +84,8 @@ the identity, or both, per sample the one whose final estimate matches the image
 def _warped_ncc(moving: torch.Tensor, fixed: torch.Tensor, matrix: torch.Tensor, grid: Grid) -> torch.Tensor:
     """``[B]`` intensity NCC of ``moving`` warped by ``matrix`` (``[B, 4, 4]`` fixed -> moving) with ``fixed``, over
     the voxels that the warp samples inside ``moving``'s box (``[B, C, x, y, z]`` on ``grid``)."""
-    warped = warp_volume(moving, matrix, grid, grid)
     inside = warp_volume(torch.ones_like(moving[:, :1]), matrix, grid, grid) > 0.999
-    w = inside.to(moving.dtype).expand_as(warped)
-    n = w.flatten(1).sum(1).clamp(min=1.0)
-
-    def centred(x: torch.Tensor) -> torch.Tensor:
-        return (x - ((x * w).flatten(1).sum(1) / n).view(-1, *[1] * (x.ndim - 1))) * w
-
-    a, c = centred(warped), centred(fixed)
-    num = (a * c).flatten(1).sum(1)
-    den = ((a * a).flatten(1).sum(1) * (c * c).flatten(1).sum(1)).sqrt().clamp(min=1e-8)
-    return num / den
+    return masked_ncc(warp_volume(moving, matrix, grid, grid), fixed, inside.to(moving.dtype))
 
 
 def context_from_fixed(fixed: torch.Tensor, factor: int = 2, context_size: Sequence[int] | None = None
