@@ -13,8 +13,9 @@ and the last level polishes it. :class:`LeadPath` (a stage group of
 3. the check (:meth:`LeadPath._lead_check`): the confidence's cheap signals (the edge test, ``tissue_on_air`` and,
    with ``--roi``, the region's block check; :func:`~monai_rigidreg.registration.confidence.confidence_score`
    without the swap term), the share of the CBCT's field of view that the estimate places inside the CT
-   (:func:`fov_overlap`), how far the last level moved the network's estimate, and whether the estimate lies inside
-   the motion range the network was trained on;
+   (``fov_in_ct`` of :func:`~monai_rigidreg.registration.overlap.overlap_shares`, on the field-of-view sample the
+   overlap checks take once), how far the last level moved the network's estimate, and whether the estimate lies
+   inside the motion range the network was trained on;
 4. only where the check fails, the fallback (:meth:`LeadPath._fallback`): the global search and the network from
    its candidates (:class:`~monai_rigidreg.registration.search.StartChoice`, the winner by image match), the last
    level again if another start won, and the full confidence with the swapped-input estimate (which may replace the
@@ -35,15 +36,15 @@ import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import SimpleITK as sitk
 
-from monai_rigidreg.core.geometry import Grid, invert_matrix, params_to_matrix, transform_points
+from monai_rigidreg.core.geometry import params_to_matrix
+from monai_rigidreg.registration.overlap import fov_sample, overlap_shares
 
 if TYPE_CHECKING:
     from monai_rigidreg.registration.state import Background, RegistrationState
 
 __all__ = ["LEAD_CONFIDENCE", "LEAD_MIN_OVERLAP", "LEAD_POLISH_MAX_MM", "LEAD_RANGE_MM", "LEAD_RANGE_DEG",
-           "fov_overlap", "LeadPath"]
+           "LeadPath"]
 
 LEAD_CONFIDENCE = 0.8
 """The check fails where the cheap signals' score (:func:`~monai_rigidreg.registration.confidence.confidence_score`
@@ -51,7 +52,8 @@ without the swap term) is below this: a margin above the flag's 0.5, so that an 
 search and the swapped-input estimate."""
 LEAD_MIN_OVERLAP = 0.8
 """The check fails where less than this share of the CBCT's field of view lies inside the CT under the estimate
-(:func:`fov_overlap`): with poor overlap the network sees little of the CT and the signals less still."""
+(``fov_in_ct`` of :func:`~monai_rigidreg.registration.overlap.overlap_shares`): with poor overlap the network sees
+little of the CT and the signals less still."""
 LEAD_POLISH_MAX_MM = 2.0
 """The check fails where the last level moved the network's estimate by more than this (mm, mean over the network
 grid's points, ``details.native_level.change_mm``): a converged network estimate is polished by a few tenths of a
@@ -62,37 +64,6 @@ shipped network was trained on motions up to 30 mm per axis (``translate_range``
 truth may lie outside its capture range and the estimate be a near miss."""
 LEAD_RANGE_DEG = 30.0
 """Likewise for the rotation angles (degrees, ``rotate_range`` of ``train.json``)."""
-
-
-def fov_overlap(fixed: sitk.Image, moving: sitk.Image, fov: sitk.Image, matrix: np.ndarray,
-                step_mm: float = 8.0) -> float:
-    """Share of the CBCT's field of view that the fixed -> moving ``matrix`` (4x4, LPS mm) places inside the CT.
-
-    Args:
-        fixed: the CT (its voxel box is where it has data).
-        moving: the CBCT.
-        fov: the CBCT's field-of-view mask on the CBCT's grid (> 0 inside).
-        matrix: the estimate, fixed (CT) -> moving (CBCT).
-        step_mm: the field of view's voxels are taken about every ``step_mm`` along each axis.
-
-    Returns the share in [0, 1] of those voxels whose CT position (``matrix``'s inverse) lies inside the CT's voxel
-    box (within half a voxel of its outer voxel centres); NaN when the field of view is empty.
-    """
-    arr = sitk.GetArrayViewFromImage(fov)  # [z, y, x]
-    spacing = np.asarray(fov.GetSpacing(), dtype=np.float64)
-    stride = [max(1, int(round(step_mm / s))) for s in spacing]
-    sub = arr[:: stride[2], :: stride[1], :: stride[0]]
-    zyx = np.argwhere(sub > 0)
-    if len(zyx) == 0:
-        return float("nan")
-    idx = zyx[:, ::-1] * np.asarray(stride)  # [n, 3] (x, y, z) voxel indices of the CBCT
-    to_phys = Grid.from_sitk(fov).index_to_physical()
-    cbct_pts = transform_points(to_phys, idx.astype(np.float64))
-    ct_pts = transform_points(invert_matrix(matrix), cbct_pts)
-    ct_idx = transform_points(np.linalg.inv(Grid.from_sitk(fixed).index_to_physical()), ct_pts)
-    size = np.asarray(fixed.GetSize(), dtype=np.float64)
-    inside = np.all((ct_idx >= -0.5) & (ct_idx <= size - 0.5), axis=1)
-    return float(inside.mean())
 
 
 class LeadPath:
@@ -139,7 +110,9 @@ class LeadPath:
         signals = self._assess(state, swap=False, record=False)
         grid_center = state.run.grid.center()
         matrix = params_to_matrix(state.params, grid_center)
-        overlap = fov_overlap(state.inputs.fixed, state.inputs.moving, state.fov_img, matrix)
+        if state.fov_sample is None:  # (stage 1 samples it wherever the field of view is known)
+            state.fov_sample = fov_sample(state.inputs.moving, state.fov_img)
+        overlap = overlap_shares(state.inputs.fixed_grid, state.fov_sample, matrix)["fov_in_ct"]
         polish = float(state.details.get("native_level", {}).get("change_mm", 0.0))
         # the estimate about the CBCT's centre (the identity's grid is centred there): the motion the network saw
         params = np.asarray(state.params, dtype=np.float64)

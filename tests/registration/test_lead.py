@@ -24,7 +24,6 @@ from monai_rigidreg.registration.lead import (
     LEAD_POLISH_MAX_MM,
     LEAD_RANGE_DEG,
     LEAD_RANGE_MM,
-    fov_overlap,
 )
 
 ISO = np.array([20.0, -10.0, 15.0])
@@ -44,6 +43,9 @@ def test_an_easy_pair_takes_the_network_led_path_without_search_or_twin(fast_pai
     check = res.details["lead_check"]
     assert check["confidence"] >= LEAD_CONFIDENCE and check["overlap"] >= LEAD_MIN_OVERLAP
     assert check["polish_mm"] <= LEAD_POLISH_MAX_MM
+    # the check's overlap is the overlap report's share of the field of view inside the CT (the estimate it checked
+    # is the result's): one sample of the field of view, one measure
+    assert check["overlap"] == pytest.approx(res.details["overlap"]["estimate"]["fov_in_ct"], abs=1e-4)
     assert check["max_translation_mm"] <= LEAD_RANGE_MM and check["max_rotation_deg"] <= LEAD_RANGE_DEG
     # neither the search nor the swapped-input estimate ran; the confidence is the calibrated one, from the check's
     # signals (the calibration's features need no twin)
@@ -107,25 +109,6 @@ def test_a_motion_beyond_the_networks_reach_fails_the_check_and_the_fallback_rec
     assert res.timings["fallback"] > 0 and "global_search" in res.timings
     assert np.isfinite(res.details["signals"]["swap_tre_mm"])  # the full confidence, with the twin
     assert tre(res) < 1.0 and not res.flagged
-
-
-def _box(size: int, spacing: float) -> sitk.Image:
-    img = sitk.Image([size] * 3, sitk.sitkFloat32)
-    img.SetSpacing([spacing] * 3)
-    img.SetOrigin([-(size - 1) * spacing / 2.0] * 3)
-    return img
-
-
-def test_fov_overlap_is_the_share_of_the_field_of_view_inside_the_ct():
-    ct = _box(40, 2.0)  # voxel centres -39..39 mm: data within [-40, 40] mm
-    cbct = _box(20, 2.0)  # voxel centres -19..19 mm
-    fov = sitk.Cast(cbct, sitk.sitkUInt8) + 1
-    assert fov_overlap(ct, cbct, fov, np.eye(4), step_mm=2.0) == 1.0
-    # T(x) = x - 40 mm along x: the CBCT's voxel at y sits at CT x = y + 40, inside for y <= 0 only (half of them)
-    shift = params_to_matrix([-40.0, 0.0, 0.0, 0.0, 0.0, 0.0], np.zeros(3))
-    assert fov_overlap(ct, cbct, fov, shift, step_mm=2.0) == pytest.approx(0.5)
-    # an empty field of view has no overlap to measure
-    assert np.isnan(fov_overlap(ct, cbct, fov * 0, np.eye(4)))
 
 
 def test_a_fallback_that_finds_no_better_start_keeps_the_polished_estimate(fast_pair, registrar, monkeypatch):

@@ -64,6 +64,9 @@ def test_a_ct_covering_half_the_cbct_is_matched_within_it_through_the_command(fa
     assert 0.3 < ov["identity"]["tissue_in_ct"] < 0.7 and 0.3 < ov["identity"]["fov_in_ct"] < 0.7, ov
     assert ov["matched_within_ct"] == "identity"
     assert result["details"]["signals"]["overlap"] == ov["estimate"]["tissue_in_ct"]
+    # the network-led check reads the same field-of-view sample: half the field of view outside the CT fails it
+    check = result["details"]["lead_check"]
+    assert check["overlap"] < 0.7 and "overlap" in check["reasons"] and result["details"]["fallback"]["run"]
     params = [result["params"][k] for k in ("tx", "ty", "tz", "rx", "ry", "rz")]
     error = _error_over(load_volume(cut), params, result["center"], truth)
     assert error < 3.0 or result["flagged"], (error, result["details"]["flag_reasons"])
