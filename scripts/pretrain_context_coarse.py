@@ -20,9 +20,6 @@ import logging
 import sys
 from pathlib import Path
 
-TRAIN_CTS = ("abdomen_pelvis_totalsegmentator_example_ct", "head_tcia_cptac_lscc_ct", "thorax_tcia_cptac_pda_ct",
-             "abdomen_pelvis_tcia_tcga_ov_ct")
-
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -59,6 +56,7 @@ def main() -> int:
     from monai_rigidreg.engine.coarse_pretrain import pretrain_coarse
     from monai_rigidreg.engine.handlers import load_matching_weights
     from monai_rigidreg.engine.sampler import MotionRange
+    from monai_rigidreg.io.shared_data import training_ct_paths
 
     torch.set_num_threads(args.threads)
     torch.manual_seed(args.seed)
@@ -72,7 +70,7 @@ def main() -> int:
     spacing = tuple(float(s) for s in parser["network_spacing"])
     factor = int(parser["context_factor"])
     datalists = [str(p) for p in (args.data / "train.json", args.data / "clinical" / "dataset.json") if p.is_file()]
-    cts = [str(args.shared / f"{n}.nii.gz") for n in TRAIN_CTS if (args.shared / f"{n}.nii.gz").is_file()]
+    cts = [str(p) for p in training_ct_paths(args.shared)]
     sources = load_sources(datalists=datalists, cts=cts, network_spacing=spacing[0],
                            context_spacing=spacing[0] * factor, isocenter_max=float(parser["isocenter_max"]))
 

@@ -54,6 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.bench_common import script_parser
+from monai_rigidreg.io.shared_data import TRAINING_CTS, training_ct_paths
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -71,8 +72,7 @@ VARIANTS = {  # name: (design, loss weights, w_levels, w_match)
     "context-nomatch": ("context", SUP_ONLY, 0.5, 0.0),
     "context-no4mm": ("context-no4mm", SUP_ONLY, 0.5, 1.0),
 }
-TRAIN_CTS = ("abdomen_pelvis_totalsegmentator_example_ct", "head_tcia_cptac_lscc_ct", "thorax_tcia_cptac_pda_ct",
-             "abdomen_pelvis_tcia_tcga_ov_ct")
+TRAIN_CTS = TRAINING_CTS
 """The real CTs of the ``sampler`` stream (the training CTs of ``scripts/train_context_model.sh``)."""
 
 
@@ -161,7 +161,7 @@ def _sampler(args: argparse.Namespace, train_cfg: dict):
 
     if not _SOURCES:
         data = args.data or shared_data_dir()
-        cts = [Path(data) / f"{n}.nii.gz" for n in TRAIN_CTS if (Path(data) / f"{n}.nii.gz").is_file()]
+        cts = training_ct_paths(data)
         _SOURCES.extend(load_sources(datalists=args.datalist, cts=cts, network_spacing=train_cfg["network_spacing"][0],
                                      context_spacing=2 * train_cfg["network_spacing"][0]))
     return RigidPairSampler(_SOURCES, network_size=train_cfg["network_size"],

@@ -56,11 +56,12 @@ def main() -> None:
                             str(args.checkpoint))
     import torch
 
-    from benchmarks.ablation.context_setup import TRAIN_CTS, sampler_sources, train_config
+    from benchmarks.ablation.context_setup import sampler_sources, train_config
     from monai_rigidreg.core.geometry import params_to_matrix_torch
     from monai_rigidreg.engine import RigidPairSampler
     from monai_rigidreg.engine.criterion import canonical_grid
     from monai_rigidreg.engine.sampler import MotionRange
+    from monai_rigidreg.io.shared_data import TRAINING_CTS
     from monai_rigidreg.losses import RigidRegistrationLoss, match_loss
     from monai_rigidreg.transforms import RIGID_KEY
 
@@ -75,7 +76,7 @@ def main() -> None:
         net.regression.passes = tuple(args.passes)
     sources, size, spacing, factor = sampler_sources(parser, args.data, args.shared, TRAINING_LISTS)
     n_lists = sum((args.data / name).is_file() for name in TRAINING_LISTS)
-    n_cts = sum((args.shared / f"{n}.nii.gz").is_file() for n in TRAIN_CTS)
+    n_cts = sum((args.shared / f"{n}.nii.gz").is_file() for n in TRAINING_CTS)
     grid = canonical_grid(size, spacing)
     sup = RigidRegistrationLoss(w_ssim=0.0, w_ncc=0.0, w_mi=0.0, w_grad=0.0, w_sup=1.0, w_reg=0.0)
     out(f"sources: {len(sources)} ({n_lists} datalists, {n_cts} CTs); {args.samples} samples per band; "

@@ -8,8 +8,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-TRAIN_CTS = ("abdomen_pelvis_totalsegmentator_example_ct", "head_tcia_cptac_lscc_ct", "thorax_tcia_cptac_pda_ct",
-             "abdomen_pelvis_tcia_tcga_ov_ct")
+from monai_rigidreg.io.shared_data import training_ct_paths
+
 CONFIGS = ["bundles/cbct_ct_rigid/configs/train.json", "bundles/cbct_ct_rigid/configs/train_context.json"]
 
 
@@ -40,7 +40,7 @@ def sampler_sources(parser: Any, data: Path, shared: Path, lists: Sequence[str] 
     size = tuple(int(s) for s in parser["network_size"])
     spacing = tuple(float(s) for s in parser["network_spacing"])
     factor = int(parser["context_factor"])
-    cts = [str(shared / f"{n}.nii.gz") for n in TRAIN_CTS if (shared / f"{n}.nii.gz").is_file()]
+    cts = [str(p) for p in training_ct_paths(shared)]
     datalists = [str(data / name) for name in lists if (data / name).is_file()]
     sources = load_sources(datalists=datalists, cts=cts, network_spacing=spacing[0],
                            context_spacing=spacing[0] * factor, isocenter_max=float(parser["isocenter_max"]))
