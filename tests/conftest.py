@@ -35,12 +35,13 @@ def smooth_random_image(size_xyz, spacing, origin, direction, seed=0, sigma_mm=3
 
 def write_dicom_series(image: sitk.Image, directory: str | Path, series_uid: str, shuffle_seed: int = 0,
                        frame_of_reference_uid: str | None = None, study_uid: str | None = None,
-                       modality: str = "CT") -> None:
+                       modality: str = "CT", patient_id: str | None = None, issuer: str | None = None) -> None:
     """Write ``image`` as a CT DICOM series into ``directory``, one file per slice, file names in random order.
 
     A plain function, so that any test builds its DICOM input with ``from conftest import write_dicom_series``.
     ``frame_of_reference_uid`` (0020|0052) is written only when given; ``study_uid`` (0020|000d) defaults to a
-    fixed UID shared by every series written here; ``modality`` (0008|0060) defaults to ``"CT"``.
+    fixed UID shared by every series written here; ``modality`` (0008|0060) defaults to ``"CT"``; ``patient_id``
+    (0010|0020) and ``issuer`` (0010|0021) are written only when given.
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -63,6 +64,8 @@ def write_dicom_series(image: sitk.Image, directory: str | Path, series_uid: str
             ("0020|0013", str(k + 1)),
             ("0018|0050", str(img16.GetSpacing()[2])),
             *([] if frame_of_reference_uid is None else [("0020|0052", frame_of_reference_uid)]),
+            *([] if patient_id is None else [("0010|0020", patient_id)]),
+            *([] if issuer is None else [("0010|0021", issuer)]),
         ]:
             sl.SetMetaData(tag, value)
         writer.SetFileName(str(directory / f"img_{order[k]:04d}.dcm"))

@@ -32,6 +32,7 @@ DICOM_TAGS: dict[str, str] = {
     "series_description": "0008|103e",
     "patient_position": "0018|5100",
     "patient_id": "0010|0020",
+    "issuer_of_patient_id": "0010|0021",
 }
 """Header fields recorded for a DICOM input (read from the first file of the series that was registered)."""
 

@@ -15,6 +15,7 @@ device and kept for later calls.
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -23,14 +24,18 @@ import torch
 from torch import nn
 
 from monai_rigidreg.core.device import resolve_device
+from monai_rigidreg.export.provenance import input_record
 from monai_rigidreg.export.record import complete_record
 from monai_rigidreg.io.dicom_series import check_distinct_inputs
 from monai_rigidreg.io.volumes import as_image
+from monai_rigidreg.registration.inputs import check_same_patient
 from monai_rigidreg.registration.match_region import RoiLike
 from monai_rigidreg.registration.registrar import RigidRegistrar
 from monai_rigidreg.registration.result import RegistrationResult
 
 __all__ = ["register"]
+
+logger = logging.getLogger(__name__)
 
 _DEFAULT_REGISTRARS: dict[tuple[str, str], RigidRegistrar] = {}
 
@@ -53,6 +58,7 @@ def register(
     keep_couch: bool = False,
     allow_swapped: bool = False,
     thorough: bool | None = None,
+    allow_other_patient: bool = False,
 ) -> RegistrationResult:
     """Rigidly register a CBCT (``moving``) to a planning CT (``fixed``).
 
@@ -94,6 +100,9 @@ def register(
             moving one's, or a CBCT's truncated cylindrical field of view,
             :func:`~monai_rigidreg.registration.inputs.swapped_reasons`): the warning stays, the result is not
             flagged for it (``details.signals.swap_allowed``).
+        allow_other_patient: register two DICOM folders whose headers name different patients (default: refused,
+            :func:`~monai_rigidreg.registration.inputs.check_same_patient`; allowed: its warning in
+            ``details["warnings"]``).
         thorough: ``True`` runs the thorough path: the global search beside the network on every call, the further
             starts where they disagree and the swapped-input estimate beside the last level. ``None`` (default): the
             registrar's ``network_leads`` (the shipped bundle: the network-led path,
@@ -111,8 +120,11 @@ def register(
         InputError: bad input, e.g. both paths naming the same file or the same DICOM series, or a constant
             image.
     """
+    patient_warning = ""
     if isinstance(fixed, (str, Path)) and isinstance(moving, (str, Path)):
         check_distinct_inputs(fixed, moving)
+        if Path(fixed).is_dir() and Path(moving).is_dir():
+            patient_warning = check_same_patient(input_record(fixed), input_record(moving), allow_other_patient)
     if isinstance(model, RigidRegistrar):
         registrar = model
     elif isinstance(model, nn.Module):
@@ -133,4 +145,7 @@ def register(
                        allow_swapped=allow_swapped, thorough=thorough)
     for stage in ("load", "total"):
         result.timings[stage] = result.timings.get(stage, 0.0) + t_load
+    if patient_warning:
+        logger.warning("%s", patient_warning)
+        result.details.setdefault("warnings", []).append(patient_warning)
     return complete_record(result, moving_img, fixed, moving, bundle=registrar.source, device=str(registrar.device))

@@ -15,7 +15,7 @@ from monai_rigidreg.export.provenance import registration_provenance
 from monai_rigidreg.export.record import ASSUMED_POSITION_SOURCE, couch_shift_record
 from monai_rigidreg.io.dicom_series import check_distinct_inputs
 from monai_rigidreg.io.volumes import load_volume
-from monai_rigidreg.registration.inputs import check_register_inputs
+from monai_rigidreg.registration.inputs import check_register_inputs, check_same_patient
 from monai_rigidreg.registration.match_region import MATCH_MODES, parse_roi
 from monai_rigidreg.registration.registrar import RigidRegistrar
 
@@ -45,6 +45,7 @@ def register_files(
     match: str = "soft",
     keep_couch: bool = False,
     allow_swapped: bool = False,
+    allow_other_patient: bool = False,
 ) -> dict[str, Path]:
     """Load both volumes, register them and write the standard outputs.
 
@@ -68,6 +69,8 @@ def register_files(
         global_init, roi, match, keep_couch, allow_swapped: the global search, the region of interest, the match
             mode, the couches and inputs that look swapped, as for :func:`~monai_rigidreg.registration.register` (the
             ROI is read and checked before registering).
+        allow_other_patient: register DICOM inputs whose headers name different patients (default: refused before
+            registering, :func:`~monai_rigidreg.registration.inputs.check_same_patient`).
         patient_position: DICOM Patient Position of the CT (``HFS``, ``FFS``, ...) for the couch axes; default the
             CT's DICOM header, else head-first supine (assumed, with a warning). A value given here that the couch
             shifts do not support is refused before registering; one read from the header gives a warning and no
@@ -88,6 +91,8 @@ def register_files(
     # the audit trail's header facts are read once, before registering; the couch axes come from them
     provenance = registration_provenance(fixed, moving, fixed_series_uid, moving_series_uid,
                                          bundle=getattr(registrar, "source", {}), device=str(registrar.device))
+    patient_warning = check_same_patient(provenance["inputs"]["fixed"], provenance["inputs"]["moving"],
+                                         allow_other_patient)
     position, position_source, position_problem = _patient_position(provenance["inputs"]["fixed"], patient_position)
     load_warnings: list[str] = []  # e.g. a DICOM series resampled over a slice gap
     fixed_img = load_volume(fixed, series_uid=fixed_series_uid, warnings=load_warnings)
@@ -98,6 +103,9 @@ def register_files(
     result.provenance = provenance
     if load_warnings:  # in the audit trail too, before the registration's own
         result.details["warnings"] = load_warnings + result.details.get("warnings", [])
+    if patient_warning:
+        logger.warning("%s", patient_warning)
+        result.details.setdefault("warnings", []).append(patient_warning)
     if reg_warning:
         logger.warning("%s", reg_warning)
         result.details.setdefault("warnings", []).append(reg_warning)

@@ -30,7 +30,7 @@ from monai_rigidreg.io.volumes import as_image, check_output_dir, grid_within, g
 
 __all__ = ["HU_AIR_LIMIT", "EIGHT_BIT_RANGE", "Inputs", "check_intensities", "not_hu", "check_hu",
            "check_cascade_steps", "check_register_inputs", "read_inputs", "SWAPPED_BOX_SHARE", "TRUNCATED_RIM_SHARE",
-           "truncated_cylinder", "swapped_reasons"]
+           "truncated_cylinder", "swapped_reasons", "check_same_patient"]
 
 logger = logging.getLogger(__name__)
 
@@ -167,6 +167,48 @@ def check_register_inputs(
     if overwrite:
         check_replaceable(out, OUTPUT_FILES)  # never delete what this package did not write, e.g. the inputs
     return out
+
+
+def check_same_patient(fixed_record: dict[str, Any], moving_record: dict[str, Any],
+                       allow_other_patient: bool = False) -> str:
+    """Refuse a CT and a CBCT whose DICOM headers name different patients, before anything is registered.
+
+    A rigid transform between two patients' images is never a setup correction, and the image signals cannot always
+    tell (another patient's head CBCT on a head CT matched with confidence 0.82 in the calibration's negative set,
+    ``docs/trust.md``); DICOM inputs say it outright. The same rule as the DICOM node's
+    (:func:`~monai_rigidreg.serve.rules.same_patient`): the same Patient ID (0010,0020), and the same Issuer of
+    Patient ID (0010,0021) where both name one.
+
+    Args:
+        fixed_record, moving_record: the inputs' :func:`~monai_rigidreg.export.provenance.input_record` (``format``,
+            ``patient_id``, ``issuer_of_patient_id``).
+        allow_other_patient: the user says the two are one patient under different IDs (e.g. a phantom, or data
+            pseudonymised per series): registered, with the returned warning.
+
+    Returns:
+        ``""``, or the warning to record where ``allow_other_patient`` let different IDs through.
+
+    Raises:
+        InputError: both inputs are DICOM series naming different patients and ``allow_other_patient`` is False.
+        Where either is not DICOM or lacks a Patient ID nothing is known, and nothing is said.
+
+    >>> check_same_patient({"format": "dicom", "patient_id": "P1"}, {"format": ".nii.gz"})
+    ''
+    """
+    if fixed_record.get("format") != "dicom" or moving_record.get("format") != "dicom":
+        return ""
+    ids = [str(r.get("patient_id") or "").strip() for r in (fixed_record, moving_record)]
+    issuers = [str(r.get("issuer_of_patient_id") or "").strip() for r in (fixed_record, moving_record)]
+    if not all(ids):
+        return ""
+    if ids[0] == ids[1] and not (all(issuers) and issuers[0] != issuers[1]):
+        return ""
+    who = [f"{i!r}" + (f" (issuer {s!r})" if s else "") for i, s in zip(ids, issuers)]
+    text = f"the CT (fixed) and the CBCT (moving) name different patients: Patient ID {who[0]} and {who[1]}"
+    if not allow_other_patient:
+        raise InputError(f"{text}; nothing was registered. If they are one patient under two IDs (a phantom, "
+                         "pseudonymised series), pass --allow-other-patient (allow_other_patient=True in Python)")
+    return f"{text}; registered because --allow-other-patient was given"
 
 
 @dataclass

@@ -76,7 +76,7 @@ class RegistrationEvaluator:
         registrar: the loaded network (the bundle's ``registrar``).
         dataset: :func:`registration_pairs`.
         output_dir: where the outputs go (one pair: this folder; several: a sub-folder per pair).
-        refine, overwrite, qc, fine_stage, isocenter, reg, transform_format: as for
+        refine, overwrite, qc, fine_stage, isocenter, reg, transform_format, allow_other_patient: as for
             :func:`~monai_rigidreg.registration.files.register_files`.
         progress: a progress bar over the pairs (with more than one).
     """
@@ -86,14 +86,15 @@ class RegistrationEvaluator:
                  isocenter: Any = None, reg: str = "auto", transform_format: str = "tfm",
                  progress: bool = True, patient_position: str | None = None, global_init: bool | None = None,
                  roi: Any = None, match: str = "soft", keep_couch: bool = False,
-                 allow_swapped: bool = False) -> None:
+                 allow_swapped: bool = False, allow_other_patient: bool = False) -> None:
         self.registrar = registrar
         self.dataset = list(dataset)
         self.output_dir = Path(output_dir)
         self.options = {"refine": refine, "overwrite": overwrite, "qc": qc, "fine_stage": fine_stage,
                         "isocenter": isocenter, "reg": reg, "transform_format": transform_format,
                         "patient_position": patient_position, "global_init": global_init, "roi": roi,
-                        "match": match, "keep_couch": keep_couch, "allow_swapped": allow_swapped}
+                        "match": match, "keep_couch": keep_couch, "allow_swapped": allow_swapped,
+                        "allow_other_patient": allow_other_patient}
         self.progress = progress
         # one folder per pair for a datalist (even of one pair), the folder itself for a single --fixed/--moving pair
         self.subfolders = len(self.dataset) > 1 or any(item.get("from_datalist") for item in self.dataset)

@@ -84,6 +84,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="the fixed image really is the planning CT although it looks like the CBCT (its box inside "
                    "the moving one's, or a CBCT's cylindrical field of view): keep the warning, do not flag the "
                    "result for it (default: flagged, details.signals.swapped)")
+    p.add_argument("--allow-other-patient", action="store_true",
+                   help="register DICOM inputs whose headers name different patients (Patient ID, Issuer of "
+                   "Patient ID), e.g. a phantom or series pseudonymised apart; the warning is kept in result.json "
+                   "(default: refused before registering, exit status 2)")
     return p
 
 
@@ -166,7 +170,8 @@ def _match_options(args: argparse.Namespace) -> dict[str, Any]:
     from monai_rigidreg.registration.match_region import parse_roi
 
     return {"global_init": False if args.no_global_init else None, "roi": parse_roi(args.roi), "match": args.match,
-            "keep_couch": args.keep_couch, "allow_swapped": args.allow_swapped}
+            "keep_couch": args.keep_couch, "allow_swapped": args.allow_swapped,
+            "allow_other_patient": args.allow_other_patient}
 
 
 def _run_batch(args: argparse.Namespace, registrar_cls: Any, evaluator_cls: Any, pairs_fn: Any) -> int:
