@@ -21,7 +21,7 @@ from monai_rigidreg.evaluation.evaluate import body_points
 from monai_rigidreg.io import load_volume
 from monai_rigidreg.registration import RigidRegistrar, overlap
 from monai_rigidreg.registration.confidence import CONFIDENCE_THRESHOLD
-from monai_rigidreg.registration.inputs import swapped_reasons, truncated_cylinder
+from monai_rigidreg.registration.inputs import image_noise_hu, swapped_reasons, truncated_cylinder
 
 
 @pytest.fixture(scope="module")
@@ -158,6 +158,35 @@ def test_a_cbct_like_cylinder_marks_the_fixed_image_as_the_cbct():
     assert swapped_reasons(cbct_like, big_ct) == ["box", "cylinder"]
     assert swapped_reasons(big_ct, cbct_like) == []
     assert swapped_reasons(ct_like, ct_like) == []  # equal boxes (a CBCT on the CT's grid) do not count
+
+
+def _block(size_xyz, spacing: float, noise_hu: float, seed: int) -> sitk.Image:
+    """Soft tissue (40 HU) in a box of ``size_xyz`` voxels centred on the origin, with white noise."""
+    rng = np.random.default_rng(seed)
+    arr = 40.0 + rng.normal(0.0, noise_hu, tuple(reversed(size_xyz)))
+    img = sitk.GetImageFromArray(arr.astype(np.float32))
+    img.SetSpacing((spacing,) * 3)
+    img.SetOrigin(tuple(-(n - 1) * spacing / 2.0 for n in size_xyz))
+    return img
+
+
+def test_image_noise_is_compared_as_at_two_millimetre_voxels():
+    # white noise of 20 HU on 1 mm voxels is 20 / sqrt(8) = 7.07 HU on 2 mm voxels; measured as such either way
+    assert image_noise_hu(_block((64, 64, 64), 1.0, 20.0, 0)) == pytest.approx(20.0 / np.sqrt(8.0), rel=0.05)
+    assert image_noise_hu(_block((32, 32, 32), 2.0, 20.0 / np.sqrt(8.0), 1)) == pytest.approx(7.07, rel=0.05)
+    assert image_noise_hu(_block((32, 32, 32), 1.0, 20.0, 0), spacing_mm=1.0) == pytest.approx(20.0, rel=0.05)
+    air = sitk.Image([32, 32, 32], sitk.sitkFloat32) - 1000.0
+    assert np.isnan(image_noise_hu(air))  # no soft tissue: nothing to measure
+
+
+def test_a_noisy_cbct_reaching_past_a_short_ct_marks_the_fixed_image_as_the_cbct():
+    """The swapped pair the box test misses (a CBCT's box reaching past a short head CT's): the fixed image is the
+    smaller box and much the noisier: ``"noise"``. In the usual order, or with noise alike, nothing."""
+    ct = _block((60, 60, 25), 4.0, 4.0, 2)  # 240 x 240 x 100 mm, smooth
+    cbct = _block((40, 40, 40), 4.0, 30.0, 3)  # 160 mm cube, noisy, past the CT's box in z
+    assert swapped_reasons(cbct, ct) == ["noise"]
+    assert swapped_reasons(ct, cbct) == []
+    assert swapped_reasons(_block((40, 40, 40), 4.0, 5.0, 3), ct) == []  # as smooth as the CT: not evidence
 
 
 # -- negative cases (real CTs; skipped without them) ----------------------------------------------------------------
