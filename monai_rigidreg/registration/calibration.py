@@ -24,13 +24,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CALIBRATION_FILE", "FEATURES", "FEATURE_SIGNS", "ConfidenceCalibration", "load_calibration", "verdict",
+__all__ = ["CALIBRATION_FILE", "POLISH_PROBE_LIMIT_MM",
+           "FEATURES", "FEATURE_SIGNS", "ConfidenceCalibration", "load_calibration", "verdict",
            "UNCALIBRATED_MEANING"]
 
 logger = logging.getLogger(__name__)
 
 CALIBRATION_FILE = "confidence_calibration.json"
 """The calibration's file name in a bundle's ``configs/``."""
+POLISH_PROBE_LIMIT_MM = 2.0
+"""The learned network alone (``fine_stage=False``) is flagged (``"unpolished"``) where the last level, run from its
+estimate as a probe and discarded, would move it by more than this (mm, the mean over the network grid's points,
+``details.signals.polish_probe_mm``): where the last level converges its move is about the estimate's error, and
+the benchmarks' success is an error under 2 mm. Measured: ``docs/trust.md``, "The learned network alone"."""
 UNCALIBRATED_MEANING = ("an uncalibrated score: the weakest of the failure signals, each mapped through a logistic "
                         "that gives 0.5 at its hand-set limit (not a probability)")
 
@@ -167,7 +173,9 @@ def verdict(signals: dict[str, Any], calibration: ConfidenceCalibration | None, 
     :func:`~monai_rigidreg.registration.confidence.confidence_score`), and where they apply ``not_hu``, ``swapped``
     (with ``swap_allowed``) and ``overlap``. Reasons: ``"not_hu"`` and ``"swapped"`` (confidence 0: the signals are
     calibrated on HU, and swapped inputs give the inverse transform), ``"overlap"`` (below ``overlap_flag_below``),
-    ``"rule"`` (a signal past its hand-set limit: the rule score below ``rule_threshold``, where the calibration
+    ``"unpolished"`` (the learned network alone, ``fine_stage=False``, whose estimate the last level would move by
+    more than :data:`POLISH_PROBE_LIMIT_MM`: ``polish_probe_mm``), ``"rule"`` (a signal past its hand-set limit:
+    the rule score below ``rule_threshold``, where the calibration
     keeps the rule, ``rule_flags``), ``"confidence"`` (the
     calibrated probability below the calibration's ``flag_below``). A flagged result's confidence is capped just
     below the flag threshold.
@@ -182,6 +190,8 @@ def verdict(signals: dict[str, Any], calibration: ConfidenceCalibration | None, 
         reasons.append("swapped")
     if _finite(signals.get("overlap"), 1.0) < overlap_flag_below:
         reasons.append("overlap")
+    if _finite(signals.get("polish_probe_mm"), 0.0) > POLISH_PROBE_LIMIT_MM:
+        reasons.append("unpolished")
     if rule < rule_threshold and (calibration is None or calibration.rule_flags):
         reasons.append("rule")
     if confidence < threshold:

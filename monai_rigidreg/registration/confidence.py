@@ -46,23 +46,9 @@ from monai_rigidreg.registration.region_check import REGION_SHIFT_LIMIT_MM, bloc
 if TYPE_CHECKING:
     from monai_rigidreg.registration.state import Background, NetworkRun, RegistrationState
 
-__all__ = [
-    "CONFIDENCE_THRESHOLD",
-    "FLAG_REASON_TEXT",
-    "LOCAL_GAIN_LIMIT",
-    "EDGE_SPACING_MM",
-    "SWAP_AGREE_MM",
-    "TISSUE_ON_AIR_LIMIT",
-    "TISSUE_HU",
-    "AIR_HU",
-    "cylindrical_fov_mask",
-    "tissue_on_air",
-    "fov_ncc",
-    "confidence_score",
-    "assess_estimate",
-    "swap_inputs",
-    "ConfidenceStage",
-]
+__all__ = ["CONFIDENCE_THRESHOLD", "FLAG_REASON_TEXT", "LOCAL_GAIN_LIMIT", "EDGE_SPACING_MM", "SWAP_AGREE_MM",
+           "TISSUE_ON_AIR_LIMIT", "TISSUE_HU", "AIR_HU", "cylindrical_fov_mask", "tissue_on_air", "fov_ncc",
+           "confidence_score", "assess_estimate", "swap_inputs", "ConfidenceStage"]
 
 logger = logging.getLogger(__name__)
 
@@ -76,6 +62,7 @@ FLAG_REASON_TEXT = {
     "overlap": "the CT covers too little of the CBCT",
     "rule": "a failure signal is past its limit",
     "confidence": "the calibrated confidence is low",
+    "unpolished": "the last level would move the learned network's estimate too far",
 }
 """``details.flag_reasons`` in words, for the log."""
 LOCAL_GAIN_LIMIT = 0.01
@@ -350,6 +337,7 @@ class ConfidenceStage:
     _image_match: Callable[..., list[float]]
     _native: Callable[..., tuple[np.ndarray, dict[str, Any]]]
     _fixed_support: Callable[..., torch.Tensor | None]
+    _polish_probe: Callable[..., float]
 
     def assess(
         self, moving_t: torch.Tensor, fixed_t: torch.Tensor, grid: Grid, params: np.ndarray, fov: torch.Tensor,
@@ -395,6 +383,8 @@ class ConfidenceStage:
             signals["seconds"] = time.perf_counter() - t
             return signals
         signals["rule_score"] = signals.pop("confidence")
+        if not state.staged:  # the learned network alone: how far the last level would move it (not applied)
+            signals["polish_probe_mm"] = self._polish_probe(state)
         overlap = self._overlap_report(state, params_to_matrix(state.params, state.run.grid.center()))
         if np.isfinite(overlap):
             signals["overlap"] = overlap

@@ -26,7 +26,14 @@ import numpy as np
 import SimpleITK as sitk
 import torch
 
-from monai_rigidreg.core.geometry import Grid, grid_points, invert_matrix, matrix_to_params, transform_points
+from monai_rigidreg.core.geometry import (
+    Grid,
+    grid_points,
+    invert_matrix,
+    matrix_to_params,
+    params_to_matrix,
+    transform_points,
+)
 from monai_rigidreg.core.grid_sampling import normalize_hu, sitk_on_grid
 from monai_rigidreg.core.image_ops import erode
 from monai_rigidreg.networks.gauss_newton import alignment_features, gauss_newton_align
@@ -202,6 +209,20 @@ class LastLevelStage:
             if stale:
                 state.early_swap.wait()
                 state.early_swap = None
+
+    def _polish_probe(self, state: RegistrationState) -> float:
+        """The learned network alone (``fine_stage=False``): how far the last level, run from its estimate, would
+        move it (mm, the mean over the network grid's points), the estimate left as it is; where the last level
+        converges, about the estimate's error (:data:`~monai_rigidreg.registration.calibration.POLISH_PROBE_LIMIT_MM`
+        flags it). NaN without a field of view or a fine stage's settings. Records ``timings["polish_probe"]``."""
+        if getattr(self.network, "fine_stage", None) is None or state.fov_img is None or state.run is None:
+            return float("nan")
+        t = time.perf_counter()
+        matrix = params_to_matrix(state.params, state.run.grid.center())
+        _, detail = self._native(state.inputs.fixed, state.inputs.moving, matrix, state.fov_img, state.weights,
+                                 state.run.grid, region=state.weight_img is not None)
+        state.timings["polish_probe"] = time.perf_counter() - t
+        return float(detail["change_mm"])
 
     def _native(self, fixed_img: sitk.Image, moving_img: sitk.Image, matrix: np.ndarray, fov_img: sitk.Image,
                 weights: list[sitk.Image], grid: Grid, region: bool = False) -> tuple[np.ndarray, dict[str, Any]]:

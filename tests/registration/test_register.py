@@ -329,6 +329,36 @@ def test_fine_stage_switch_returns_the_regressions_own_estimate(fast_pair, tmp_p
                                atol=1e-4)
 
 
+def test_the_network_alone_is_flagged_where_the_last_level_would_move_it_far(fast_pair, monkeypatch):
+    """``fine_stage=False``: the last level runs from the learned estimate as a probe (the estimate is kept), and how
+    far it would move it, ``details.signals.polish_probe_mm``, is about the estimate's error: the shipped network
+    alone is about 4 mm off on the fast pair, the probe says so and the result is flagged ``"unpolished"``; an
+    estimate at the true motion is moved a fraction of a millimetre and not flagged for it; the default path runs no
+    probe."""
+    from monai_rigidreg.core.geometry import recenter_params
+    from monai_rigidreg.registration.calibration import POLISH_PROBE_LIMIT_MM
+
+    registrar = RigidRegistrar.from_bundle(device="cpu")
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    alone = register(fixed, moving, model=registrar, fine_stage=False, resample_moving=False)
+    tre = _fast_pair_tre(fast_pair, alone)
+    probe = alone.details["signals"]["polish_probe_mm"]
+    assert tre > POLISH_PROBE_LIMIT_MM and probe == pytest.approx(tre, abs=0.5)
+    assert "unpolished" in alone.details["flag_reasons"] and alone.flagged and alone.timings["polish_probe"] > 0
+    truth = np.asarray(MOTION, dtype=np.float64)  # about the CT centre
+
+    def at_the_truth(moving_t, fixed_t, grid, *args, **kwargs):
+        return np.stack([recenter_params(truth, alone.center, grid.center())] * len(moving_t))
+
+    monkeypatch.setattr(registrar, "estimate_batch", at_the_truth)
+    right = register(fixed, moving, model=registrar, fine_stage=False, resample_moving=False)
+    np.testing.assert_allclose(right.params, truth, atol=1e-3)  # the estimate is kept as it came
+    assert right.details["signals"]["polish_probe_mm"] < 1.0 and "unpolished" not in right.details["flag_reasons"]
+    monkeypatch.undo()
+    full = register(fixed, moving, model=registrar, resample_moving=False)
+    assert "polish_probe_mm" not in full.details["signals"] and "polish_probe" not in full.timings
+
+
 # -- the swapped-input estimate as a third candidate (confidence.SWAP_AGREE_MM) -------------------------------------
 
 
