@@ -138,9 +138,15 @@ def _json_default(v: Any) -> Any:
 # Fit
 # ---------------------------------------------------------------------------------------------------------------
 def load_rows(paths: list[Path]) -> list[dict[str, Any]]:
+    """The collected rows; a row collected before ``signals.alternative_ncc_gap`` existed gets it from its
+    ``swap_check`` (the same two image-match scores, as the registrar now records them)."""
     rows = []
     for path in paths:
         rows += [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    for r in rows:
+        check, signals = r.get("swap_check"), r.get("signals")
+        if check and signals is not None and "alternative_ncc_gap" not in signals:
+            signals["alternative_ncc_gap"] = round(abs(check["estimate_ncc"] - check["swapped_ncc"]), 4)
     return rows
 
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CALIBRATION_FILE", "POLISH_PROBE_LIMIT_MM",
+__all__ = ["CALIBRATION_FILE", "POLISH_PROBE_LIMIT_MM", "AMBIGUOUS_NCC_GAP",
            "FEATURES", "FEATURE_SIGNS", "ConfidenceCalibration", "load_calibration", "verdict",
            "UNCALIBRATED_MEANING"]
 
@@ -37,6 +37,13 @@ POLISH_PROBE_LIMIT_MM = 2.0
 estimate as a probe and discarded, would move it by more than this (mm, the mean over the network grid's points,
 ``details.signals.polish_probe_mm``): where the last level converges its move is about the estimate's error, and
 the benchmarks' success is an error under 2 mm. Measured: ``docs/trust.md``, "The learned network alone"."""
+AMBIGUOUS_NCC_GAP = 0.1
+"""A result is flagged ``"ambiguous"`` where its swapped-input estimate (the fallback's and the thorough path's
+twin) disagrees with it by more than :data:`~monai_rigidreg.registration.confidence.SWAP_AGREE_MM` and the two
+match the images (the field of view's NCC, the score that chooses between them) within this of each other
+(``details.signals.alternative_ncc_gap``): two distant poses fit about equally well, and the images do not settle
+which is right (a short head CT, another patient's anatomy, a deformed pair without the search). Chosen on the
+calibration's cases (``docs/trust.md``)."""
 UNCALIBRATED_MEANING = ("an uncalibrated score: the weakest of the failure signals, each mapped through a logistic "
                         "that gives 0.5 at its hand-set limit (not a probability)")
 
@@ -174,7 +181,9 @@ def verdict(signals: dict[str, Any], calibration: ConfidenceCalibration | None, 
     (with ``swap_allowed``) and ``overlap``. Reasons: ``"not_hu"`` and ``"swapped"`` (confidence 0: the signals are
     calibrated on HU, and swapped inputs give the inverse transform), ``"overlap"`` (below ``overlap_flag_below``),
     ``"unpolished"`` (the learned network alone, ``fine_stage=False``, whose estimate the last level would move by
-    more than :data:`POLISH_PROBE_LIMIT_MM`: ``polish_probe_mm``), ``"rule"`` (a signal past its hand-set limit:
+    more than :data:`POLISH_PROBE_LIMIT_MM`: ``polish_probe_mm``), ``"ambiguous"`` (the swapped-input estimate lies
+    more than :data:`~monai_rigidreg.registration.confidence.SWAP_AGREE_MM` away and the two match the images within
+    :data:`AMBIGUOUS_NCC_GAP`: ``alternative_ncc_gap``), ``"rule"`` (a signal past its hand-set limit:
     the rule score below ``rule_threshold``, where the calibration
     keeps the rule, ``rule_flags``), ``"confidence"`` (the
     calibrated probability below the calibration's ``flag_below``). A flagged result's confidence is capped just
@@ -192,6 +201,8 @@ def verdict(signals: dict[str, Any], calibration: ConfidenceCalibration | None, 
         reasons.append("overlap")
     if _finite(signals.get("polish_probe_mm"), 0.0) > POLISH_PROBE_LIMIT_MM:
         reasons.append("unpolished")
+    if _finite(signals.get("alternative_ncc_gap"), math.inf) < AMBIGUOUS_NCC_GAP:
+        reasons.append("ambiguous")
     if rule < rule_threshold and (calibration is None or calibration.rule_flags):
         reasons.append("rule")
     if confidence < threshold:

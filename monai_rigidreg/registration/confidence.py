@@ -62,6 +62,7 @@ FLAG_REASON_TEXT = {
     "overlap": "the CT covers too little of the CBCT",
     "rule": "a failure signal is past its limit",
     "confidence": "the calibrated confidence is low",
+    "ambiguous": "another estimate far from this one matches the images about as well",
     "unpolished": "the last level would move the learned network's estimate too far",
 }
 """``details.flag_reasons`` in words, for the log."""
@@ -426,7 +427,7 @@ class ConfidenceStage:
         grid = run.grid
         grid_center = grid.center()
         region = None if weight_img is None else weight_on_grid([weight_img], grid)[0]
-        replaced = False
+        replaced, alternative_gap = False, None
         while True:
             # in the frame of the winning start: its resampled CBCT and the residual of the final estimate
             to_start = invert_matrix(run.start)
@@ -452,6 +453,8 @@ class ConfidenceStage:
                                               weight_img if weight_img is not None else domain)
             check = {"estimate_ncc": round(s_est, 4), "swapped_ncc": round(s_swap, 4),
                      "swap_tre_mm": round(signals["swap_tre_mm"], 2)}
+            if alternative_gap is None:  # the two estimates the images chose between (calibration.AMBIGUOUS_NCC_GAP)
+                alternative_gap = abs(float(s_est) - float(s_swap))
             if s_swap > s_est and may_replace and not replaced:
                 replaced = True
                 details["swap_check"] = {**check, "replaced": True}
@@ -470,6 +473,8 @@ class ConfidenceStage:
             if replaced:
                 details["swap_check"]["after_replacement"] = check
             break
+        if alternative_gap is not None:
+            signals["alternative_ncc_gap"] = round(alternative_gap, 4)
         if roi_img is not None:
             # the region's structures against the CBCT (block matching): on flat or deformed anatomy an image optimum
             # can leave them millimetres off while every other signal reads well

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from monai_rigidreg.registration.calibration import (
+    AMBIGUOUS_NCC_GAP,
     CALIBRATION_FILE,
     FEATURES,
     ConfidenceCalibration,
@@ -50,6 +51,12 @@ def test_the_verdict_rules_and_the_cap_below_the_flag_threshold():
     conf, reasons = verdict({**ok, "rule_score": 0.1}, cal, 0.5, 0.35)
     assert reasons == ["rule"] and conf < 0.8
     assert verdict({**ok, "swap_tre_mm": 20.0}, cal, 0.5, 0.35)[1] == ["confidence"]
+    # two distant estimates that match the images about as well: ambiguous; a clear winner is not
+    conf, reasons = verdict({**ok, "alternative_ncc_gap": AMBIGUOUS_NCC_GAP / 2}, cal, 0.5, 0.35)
+    assert reasons == ["ambiguous"] and conf == pytest.approx(0.79)
+    assert verdict({**ok, "alternative_ncc_gap": 2 * AMBIGUOUS_NCC_GAP}, cal, 0.5, 0.35)[1] == []
+    assert verdict({**ok, "polish_probe_mm": 2.5}, cal, 0.5, 0.35)[1] == ["unpolished"]
+    assert verdict({**ok, "polish_probe_mm": 1.5}, cal, 0.5, 0.35)[1] == []
     with pytest.raises(ValueError, match="unknown features"):
         ConfidenceCalibration("t", "x", ("no_such_feature",), (1.0,), 0.0, 0.5)
 

@@ -629,6 +629,9 @@ def test_a_worse_swapped_estimate_does_not_count_against_a_right_one(fast_pair, 
     check = res.details["swap_check"]
     assert not check["replaced"] and check["swap_tre_mm"] > 10.0 and check["swapped_ncc"] < check["estimate_ncc"]
     assert res.details["signals"]["swap_counted"] is False and res.details["start"] == "identity"
+    # the images chose clearly between the two: not ambiguous (calibration.AMBIGUOUS_NCC_GAP)
+    gap = res.details["signals"]["alternative_ncc_gap"]
+    assert gap == pytest.approx(abs(check["estimate_ncc"] - check["swapped_ncc"]), abs=2e-4) and gap > 0.1
     assert _fast_pair_tre(fast_pair, res) < 2.0
     assert not res.flagged
     assert confidence_score(res.details["signals"]["local_gain"], check["swap_tre_mm"]) < 0.5
