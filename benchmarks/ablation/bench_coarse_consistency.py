@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.ablation.context_setup import add_common_options
 from benchmarks.bench_common import Tee, end_run, script_parser, start_run
 
 
@@ -29,12 +30,8 @@ def main() -> None:
     ap.add_argument("--checkpoint", type=Path, default=None, help="training checkpoint or model.pt (default: none)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a ContextCorrelationNet argument (JSON value or string), e.g. coarse_units=1")
-    ap.add_argument("--data", type=Path, default=Path("data"))
-    ap.add_argument("--shared", type=Path, default=Path("../shared/data"))
     ap.add_argument("--samples", type=int, default=6)
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--seed", type=int, default=5)
-    ap.add_argument("--results", type=Path, default=None)
+    add_common_options(ap, seed=5)
     args = ap.parse_args()
     out = Tee()
     monitor, t0 = start_run(out, __spec__.name if __spec__ else "bench_coarse_consistency", args.threads, "cpu",

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.ablation.context_setup import add_common_options
 from benchmarks.bench_common import Tee, end_run, script_parser, start_run
 
 
@@ -36,11 +37,7 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=4)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--every", type=int, default=25, help="print every N steps")
-    ap.add_argument("--data", type=Path, default=Path("data"))
-    ap.add_argument("--shared", type=Path, default=Path("../shared/data"))
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--results", type=Path, default=None)
+    add_common_options(ap, seed=0)
     args = ap.parse_args()
     out = Tee()
     monitor, t0 = start_run(out, __spec__.name if __spec__ else "bench_coarse_learnability", args.threads, "cpu",

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.ablation.context_setup import add_common_options
 from benchmarks.bench_common import Tee, end_run, script_parser, start_run
 
 BANDS = {  # name: (max translation mm, max rotation deg, min translation mm)
@@ -40,16 +41,12 @@ def main() -> None:
 
     ap = script_parser(__doc__)
     ap.add_argument("checkpoint", type=Path, help="a training checkpoint (checkpoint_*epoch=N.pt) or model.pt")
-    ap.add_argument("--data", type=Path, default=Path("data"), help="the training data folder (train.json, clinical/)")
-    ap.add_argument("--shared", type=Path, default=Path("../shared/data"))
     ap.add_argument("--samples", type=int, default=8, help="pairs per band (default 8)")
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--seed", type=int, default=123)
     ap.add_argument("--passes", type=int, nargs=2, default=None,
                     help="passes of the 8 mm and 4 mm levels (default: the train config's; inference uses 2 1)")
     ap.add_argument("--coarse-start", choices=COARSE_STARTS, default="coarse",
                     help="where the local levels start (ContextCorrelationNet's coarse_start)")
-    ap.add_argument("--results", type=Path, default=None)
+    add_common_options(ap, seed=123, data_help='the training data folder (train.json, clinical/)')
     args = ap.parse_args()
     out = Tee()
     monitor, t0 = start_run(out, __spec__.name if __spec__ else "bench_levels_by_motion", args.threads, "cpu",

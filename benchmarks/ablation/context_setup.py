@@ -1,8 +1,10 @@
-"""What the context network's ablation scripts share: the train config with ``--set`` overrides of the network, and
-the training sampler's sources (the training data and CTs of ``scripts/train_context_model.sh``)."""
+"""What the context network's ablation scripts share: the train config with ``--set`` overrides of the network, the
+training sampler's sources (the training data and CTs of ``scripts/train_context_model.sh``) and their common
+command-line options."""
 
 from __future__ import annotations
 
+import argparse
 import json
 from collections.abc import Sequence
 from pathlib import Path
@@ -45,3 +47,13 @@ def sampler_sources(parser: Any, data: Path, shared: Path, lists: Sequence[str] 
     sources = load_sources(datalists=datalists, cts=cts, network_spacing=spacing[0],
                            context_spacing=spacing[0] * factor, isocenter_max=float(parser["isocenter_max"]))
     return sources, size, spacing, factor
+
+
+def add_common_options(ap: argparse.ArgumentParser, seed: int = 0, data_help: str | None = None) -> None:
+    """``--data`` (the training data folder), ``--shared`` (the real CTs), ``--threads``, ``--seed`` (default
+    ``seed``) and ``--results`` (a file for the printed report)."""
+    ap.add_argument("--data", type=Path, default=Path("data"), help=data_help)
+    ap.add_argument("--shared", type=Path, default=Path("../shared/data"))
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=seed)
+    ap.add_argument("--results", type=Path, default=None)
