@@ -139,13 +139,14 @@ def _json_default(v: Any) -> Any:
 # ---------------------------------------------------------------------------------------------------------------
 def load_rows(paths: list[Path]) -> list[dict[str, Any]]:
     """The collected rows; a row collected before ``signals.alternative_ncc_gap`` existed gets it from its
-    ``swap_check`` (the same two image-match scores, as the registrar now records them)."""
+    ``swap_check`` (the same two image-match scores, as the registrar now records them), except the learned network
+    alone's (``paper_regression``), where the verdict does not use it (``calibration.AMBIGUOUS_NCC_GAP``)."""
     rows = []
     for path in paths:
         rows += [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     for r in rows:
         check, signals = r.get("swap_check"), r.get("signals")
-        if check and signals is not None and "alternative_ncc_gap" not in signals:
+        if check and signals is not None and "alternative_ncc_gap" not in signals and r["set"] != "paper_regression":
             signals["alternative_ncc_gap"] = round(abs(check["estimate_ncc"] - check["swapped_ncc"]), 4)
     return rows
 

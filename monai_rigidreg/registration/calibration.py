@@ -183,9 +183,9 @@ def verdict(signals: dict[str, Any], calibration: ConfidenceCalibration | None, 
     ``"unpolished"`` (the learned network alone, ``fine_stage=False``, whose estimate the last level would move by
     more than :data:`POLISH_PROBE_LIMIT_MM`: ``polish_probe_mm``), ``"ambiguous"`` (the swapped-input estimate lies
     more than :data:`~monai_rigidreg.registration.confidence.SWAP_AGREE_MM` away and the two match the images within
-    :data:`AMBIGUOUS_NCC_GAP`: ``alternative_ncc_gap``), ``"rule"`` (a signal past its hand-set limit:
-    the rule score below ``rule_threshold``, where the calibration
-    keeps the rule, ``rule_flags``), ``"confidence"`` (the
+    :data:`AMBIGUOUS_NCC_GAP`: ``alternative_ncc_gap``; not for the network alone), ``"rule"`` (a signal past its
+    hand-set limit: the rule score below ``rule_threshold``, where the calibration keeps the rule, ``rule_flags``),
+    ``"confidence"`` (the
     calibrated probability below the calibration's ``flag_below``). A flagged result's confidence is capped just
     below the flag threshold.
     """
@@ -201,8 +201,8 @@ def verdict(signals: dict[str, Any], calibration: ConfidenceCalibration | None, 
         reasons.append("overlap")
     if _finite(signals.get("polish_probe_mm"), 0.0) > POLISH_PROBE_LIMIT_MM:
         reasons.append("unpolished")
-    if _finite(signals.get("alternative_ncc_gap"), math.inf) < AMBIGUOUS_NCC_GAP:
-        reasons.append("ambiguous")
+    if _finite(signals.get("alternative_ncc_gap"), math.inf) < AMBIGUOUS_NCC_GAP and "polish_probe_mm" not in signals:
+        reasons.append("ambiguous")  # (not for the learned network alone: neither estimate is at an image optimum)
     if rule < rule_threshold and (calibration is None or calibration.rule_flags):
         reasons.append("rule")
     if confidence < threshold:

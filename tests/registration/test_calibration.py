@@ -55,6 +55,8 @@ def test_the_verdict_rules_and_the_cap_below_the_flag_threshold():
     conf, reasons = verdict({**ok, "alternative_ncc_gap": AMBIGUOUS_NCC_GAP / 2}, cal, 0.5, 0.35)
     assert reasons == ["ambiguous"] and conf == pytest.approx(0.79)
     assert verdict({**ok, "alternative_ncc_gap": 2 * AMBIGUOUS_NCC_GAP}, cal, 0.5, 0.35)[1] == []
+    # the learned network alone (it carries the polish probe): its twin is no image optimum either, not ambiguity
+    assert verdict({**ok, "alternative_ncc_gap": 0.01, "polish_probe_mm": 0.5}, cal, 0.5, 0.35)[1] == []
     assert verdict({**ok, "polish_probe_mm": 2.5}, cal, 0.5, 0.35)[1] == ["unpolished"]
     assert verdict({**ok, "polish_probe_mm": 1.5}, cal, 0.5, 0.35)[1] == []
     with pytest.raises(ValueError, match="unknown features"):
