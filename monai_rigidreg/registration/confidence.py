@@ -473,8 +473,10 @@ class ConfidenceStage:
             if replaced:
                 details["swap_check"]["after_replacement"] = check
             break
-        if alternative_gap is not None:
-            signals["alternative_ncc_gap"] = round(alternative_gap, 4)
+        other = details.get("overlap", {}).get("other_starts", {}).get("alternative_ncc_gap")  # a distinct start's
+        gaps = [g for g in (alternative_gap, other) if g is not None]
+        if gaps:
+            signals["alternative_ncc_gap"] = round(min(gaps), 4)
         if roi_img is not None:
             # the region's structures against the CBCT (block matching): on flat or deformed anatomy an image optimum
             # can leave them millimetres off while every other signal reads well

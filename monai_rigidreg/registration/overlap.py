@@ -28,7 +28,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from monai_rigidreg.core.errors import InputError
-from monai_rigidreg.core.geometry import Grid, invert_matrix, transform_points
+from monai_rigidreg.core.geometry import Grid, grid_points, invert_matrix, transform_points
 from monai_rigidreg.registration.match_region import weight_on_grid
 
 if TYPE_CHECKING:
@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from monai_rigidreg.registration.state import RegistrationState
 
 __all__ = ["CT_EDGE_MARGIN_MM", "OVERLAP_WEIGHTED_BELOW", "OVERLAP_FLAG_BELOW", "TISSUE_HU", "MIN_TISSUE_SHARE",
+           "AMBIGUOUS_DISTANCE_MM",
            "FOV_SAMPLE_MAX_POINTS",
            "FovSample", "fov_sample", "overlap_shares", "ct_domain_weight", "OverlapStage"]
 
@@ -57,6 +58,10 @@ part of its length; ``python -m benchmarks.confidence.bench_confidence_calibrati
 and flagged right results: 10 of 134 default-path successes at 0.35 (0.4.9's value), 2 at 0.2."""
 TISSUE_HU = -500.0
 """CBCT voxels above this (HU) are tissue for :func:`overlap_shares` (air and lung below)."""
+AMBIGUOUS_DISTANCE_MM = 3.0
+"""Another start's estimate this far (mm, mean over the network grid's points) from the kept one counts as a distinct
+pose for the ``"ambiguous"`` flag (``details.overlap.other_starts.alternative_ncc_gap``; the swapped-input estimate's
+limit, ``confidence.SWAP_AGREE_MM``)."""
 MIN_TISSUE_SHARE = 0.002
 """A CBCT whose field of view holds less than this share of tissue voxels is refused: nothing to register."""
 
@@ -214,9 +219,18 @@ class OverlapStage:
         scores = self._image_match(state.inputs.fixed, state.inputs.moving, state.fov_img,
                                    [refined, *[m for m, _ in finals]], region)
         best = int(np.argmax(np.nan_to_num(np.asarray(scores, dtype=np.float64), nan=-np.inf)))
+        # how far each candidate ended from the kept one (the network grid's points), and how close the nearest
+        # distant one came in the image match (calibration.AMBIGUOUS_NCC_GAP, with the twin's)
+        poses = [refined, *[m for m, _ in finals]]
+        points = grid_points(state.run.grid, 8)
+        distance = [float(np.linalg.norm(transform_points(p, points) - transform_points(poses[best], points),
+                                         axis=1).mean()) for p in poses]
+        gaps = [abs(float(scores[best]) - float(v)) for k, v in enumerate(scores)
+                if k != best and distance[k] > AMBIGUOUS_DISTANCE_MM and np.isfinite(v)]
         state.details.setdefault("overlap", {})["other_starts"] = {
             "estimate_ncc": round(float(scores[0]), 4), "other_ncc": [round(float(v), 4) for v in scores[1:]],
-            "replaced": best > 0}
+            "distance_mm": [round(v, 2) for k, v in enumerate(distance) if k != best], "replaced": best > 0,
+            **({"alternative_ncc_gap": round(min(gaps), 4)} if gaps else {})}
         if best == 0:
             return refined, False
         run, (matrix, detail) = others[best - 1], finals[best - 1]
