@@ -2,7 +2,8 @@
 and the value formats of DICOM headers (Decimal Strings, UIDs).
 
 :func:`read_dicom_series` is what :func:`monai_rigidreg.io.load_volume` uses for a folder;
-:func:`check_distinct_inputs` refuses to register a series to itself; :mod:`monai_rigidreg.export.dicom_reg` writes the
+:func:`check_distinct_inputs` refuses to register a series to itself, :func:`same_patient_ids` says whether two
+headers name one patient; :mod:`monai_rigidreg.export.dicom_reg` writes the
 Spatial Registration object with :func:`format_ds` and :func:`is_valid_uid`.
 """
 
@@ -28,6 +29,7 @@ __all__ = [
     "describe_dicom_series",
     "header_tags",
     "check_distinct_inputs",
+    "same_patient_ids",
     "read_dicom_series",
     "SLICE_GAP_TOLERANCE",
     "format_ds",
@@ -146,6 +148,21 @@ def check_distinct_inputs(fixed: str | Path, moving: str | Path, fixed_series_ui
                      f"would be registered to itself. Series in {f}: {listing}. Choose them with "
                      "--fixed-series-uid and --moving-series-uid (fixed_series_uid= / moving_series_uid= in "
                      "Python)", m)
+
+
+def same_patient_ids(id_a: str, id_b: str, issuer_a: str = "", issuer_b: str = "") -> bool:
+    """Whether two DICOM headers name one patient: the same Patient ID (0010,0020), present in both, and the same
+    Issuer of Patient ID (0010,0021) where both name one (surrounding spaces ignored). The rule of the DICOM node's
+    CT choice (:func:`~monai_rigidreg.serve.rules.same_patient`) and of the ``register`` inputs
+    (:func:`~monai_rigidreg.registration.inputs.check_same_patient`).
+
+    >>> same_patient_ids("P1", " P1", "HOSP-A", ""), same_patient_ids("P1", "P1", "HOSP-A", "HOSP-B")
+    (True, False)
+    """
+    a, b = id_a.strip(), id_b.strip()
+    if not a or a != b:
+        return False
+    return not (issuer_a.strip() and issuer_b.strip() and issuer_a.strip() != issuer_b.strip())
 
 
 def read_dicom_series(directory: Path, series_uid: str | None, warnings: list[str] | None = None) -> sitk.Image:

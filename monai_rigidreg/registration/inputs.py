@@ -25,6 +25,7 @@ import SimpleITK as sitk
 from monai_rigidreg.core.errors import InputError
 from monai_rigidreg.core.geometry import Grid
 from monai_rigidreg.export.outputs import OUTPUT_FILES
+from monai_rigidreg.io.dicom_series import same_patient_ids
 from monai_rigidreg.io.staging import check_replaceable
 from monai_rigidreg.io.volumes import as_image, check_output_dir, grid_within, grids_overlap
 
@@ -224,8 +225,8 @@ def check_same_patient(fixed_record: dict[str, Any], moving_record: dict[str, An
 
     A rigid transform between two patients' images is never a setup correction, and the image signals cannot always
     tell (another patient's head CBCT on a head CT matched with confidence 0.82 in the calibration's negative set,
-    ``docs/trust.md``); DICOM inputs say it outright. The same rule as the DICOM node's
-    (:func:`~monai_rigidreg.serve.rules.same_patient`): the same Patient ID (0010,0020), and the same Issuer of
+    ``docs/trust.md``); DICOM inputs say it outright. The DICOM node's rule,
+    :func:`~monai_rigidreg.io.dicom_series.same_patient_ids`: the same Patient ID (0010,0020), and the same Issuer of
     Patient ID (0010,0021) where both name one.
 
     Args:
@@ -248,9 +249,7 @@ def check_same_patient(fixed_record: dict[str, Any], moving_record: dict[str, An
         return ""
     ids = [str(r.get("patient_id") or "").strip() for r in (fixed_record, moving_record)]
     issuers = [str(r.get("issuer_of_patient_id") or "").strip() for r in (fixed_record, moving_record)]
-    if not all(ids):
-        return ""
-    if ids[0] == ids[1] and not (all(issuers) and issuers[0] != issuers[1]):
+    if not all(ids) or same_patient_ids(*ids, *issuers):
         return ""
     who = [f"{i!r}" + (f" (issuer {s!r})" if s else "") for i, s in zip(ids, issuers)]
     text = f"the CT (fixed) and the CBCT (moving) name different patients: Patient ID {who[0]} and {who[1]}"

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from monai_rigidreg.io.dicom_series import same_patient_ids
 from monai_rigidreg.serve.config import Classification, CtSelection
 
 __all__ = ["SeriesFacts", "SliceFacts", "classify_series", "check_series_complete", "choose_ct", "CtChoice",
@@ -152,10 +153,9 @@ class CtChoice:
 
 
 def same_patient(a: SeriesFacts, b: SeriesFacts) -> bool:
-    """The same Patient ID, and the same Issuer of Patient ID where both name one."""
-    if not a.patient_id.strip() or a.patient_id.strip() != b.patient_id.strip():
-        return False
-    return not (a.issuer.strip() and b.issuer.strip() and a.issuer.strip() != b.issuer.strip())
+    """The same Patient ID, and the same Issuer of Patient ID where both name one
+    (:func:`~monai_rigidreg.io.dicom_series.same_patient_ids`)."""
+    return same_patient_ids(a.patient_id, b.patient_id, a.issuer, b.issuer)
 
 
 def choose_ct(cbct: SeriesFacts, cts: Sequence[SeriesFacts], rule: CtSelection,
