@@ -28,7 +28,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from monai_rigidreg.core.errors import InputError
-from monai_rigidreg.core.geometry import Grid, grid_points, invert_matrix, transform_points
+from monai_rigidreg.core.geometry import Grid, grid_points, invert_matrix, target_registration_error, transform_points
 from monai_rigidreg.registration.match_region import weight_on_grid
 
 if TYPE_CHECKING:
@@ -226,8 +226,7 @@ class OverlapStage:
         # distant one came in the image match (calibration.AMBIGUOUS_NCC_GAP, with the twin's)
         poses = [refined, *[m for m, _ in finals]]
         points = grid_points(state.run.grid, 8)
-        distance = [float(np.linalg.norm(transform_points(p, points) - transform_points(poses[best], points),
-                                         axis=1).mean()) for p in poses]
+        distance = [float(target_registration_error(p, poses[best], points)) for p in poses]
         gaps = [abs(float(scores[best]) - float(v)) for k, v in enumerate(scores)
                 if k != best and distance[k] > AMBIGUOUS_DISTANCE_MM and np.isfinite(v)]
         state.details.setdefault("overlap", {})["other_starts"] = {

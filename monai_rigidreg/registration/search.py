@@ -40,6 +40,7 @@ from monai_rigidreg.core.geometry import (
     invert_matrix,
     matrix_to_params,
     params_to_matrix,
+    target_registration_error,
     transform_points,
 )
 from monai_rigidreg.core.grid_sampling import (
@@ -259,8 +260,9 @@ def global_search(
 
 
 def matrix_distance_mm(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:
-    """Mean distance (mm) between ``points`` mapped by the 4x4 matrices ``a`` and ``b``."""
-    return float(np.linalg.norm(transform_points(a, points) - transform_points(b, points), axis=1).mean())
+    """Mean distance (mm) between ``points`` mapped by the 4x4 matrices ``a`` and ``b``
+    (:func:`~monai_rigidreg.core.geometry.target_registration_error`)."""
+    return float(target_registration_error(a, b, points))
 
 
 def fov_similarity(fixed: sitk.Image, moving: sitk.Image, fov: sitk.Image, matrices: Sequence[np.ndarray],
