@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from monai_rigidreg.core.device import resolve_device
-from monai_rigidreg.export.provenance import input_record
+from monai_rigidreg.export.provenance import registration_provenance
 from monai_rigidreg.export.record import complete_record
 from monai_rigidreg.io.dicom_series import check_distinct_inputs
 from monai_rigidreg.io.volumes import as_image
@@ -120,11 +120,9 @@ def register(
         InputError: bad input, e.g. both paths naming the same file or the same DICOM series, or a constant
             image.
     """
-    patient_warning = ""
-    if isinstance(fixed, (str, Path)) and isinstance(moving, (str, Path)):
+    paths = isinstance(fixed, (str, Path)) and isinstance(moving, (str, Path))
+    if paths:
         check_distinct_inputs(fixed, moving)
-        if Path(fixed).is_dir() and Path(moving).is_dir():
-            patient_warning = check_same_patient(input_record(fixed), input_record(moving), allow_other_patient)
     if isinstance(model, RigidRegistrar):
         registrar = model
     elif isinstance(model, nn.Module):
@@ -134,6 +132,12 @@ def register(
         if key not in _DEFAULT_REGISTRARS:
             _DEFAULT_REGISTRARS[key] = RigidRegistrar.from_bundle(bundle, device=device)
         registrar = _DEFAULT_REGISTRARS[key]
+    # two DICOM folders: their headers are read once, before registering, for the patient check and the audit trail
+    provenance, patient_warning = {}, ""
+    if paths and Path(fixed).is_dir() and Path(moving).is_dir():
+        provenance = registration_provenance(fixed, moving, bundle=registrar.source, device=str(registrar.device))
+        patient_warning = check_same_patient(provenance["inputs"]["fixed"], provenance["inputs"]["moving"],
+                                             allow_other_patient)
     # read here (as the registrar would: the same reader and checks), so that the result's couch shifts can be placed
     # at the CBCT's centre
     t_load = time.perf_counter()
@@ -145,6 +149,8 @@ def register(
                        allow_swapped=allow_swapped, thorough=thorough)
     for stage in ("load", "total"):
         result.timings[stage] = result.timings.get(stage, 0.0) + t_load
+    if provenance:  # (complete_record makes it where it is still empty)
+        result.provenance = provenance
     if patient_warning:
         logger.warning("%s", patient_warning)
         result.details.setdefault("warnings", []).append(patient_warning)

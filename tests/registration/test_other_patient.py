@@ -48,6 +48,8 @@ def test_the_same_patient_registers_without_a_warning_and_python_refuses_too(pai
     ct, cbct = _dicom_pair(pair, tmp_path / "same", "PAT-001", "PAT-001")
     res = monai_rigidreg.register(ct, cbct, model=small_registrar, resample_moving=False)
     assert not any("different patients" in w for w in res.details.get("warnings", []))
+    assert res.provenance["inputs"]["moving"]["patient_id"] == "PAT-001"  # the headers read once, recorded
+    assert res.provenance["inputs"]["fixed"]["format"] == "dicom" and res.provenance["bundle"] == small_registrar.source
     other_ct, other_cbct = _dicom_pair(pair, tmp_path / "other", "PAT-001", "PAT-001", "HOSP-A", "HOSP-B")
     with pytest.raises(InputError, match="different patients.*issuer 'HOSP-A'"):
         monai_rigidreg.register(other_ct, other_cbct, model=small_registrar, resample_moving=False)
