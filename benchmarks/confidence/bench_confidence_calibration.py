@@ -294,6 +294,7 @@ def fit(args: Any, out: Tee) -> None:
                       "## Reliability, held out (leave one CT out): the confidence a user sees, every registered case")
     totals = flag_table(rows, oof_flag, out, "## Failures caught and false alarms, held out (leave one CT out)")
     _targets(rows, oof_flag, out)
+    _probe_report(rows, out)
     _cases(rows, oof_conf, oof_reasons, oof_flag, out)
     # the shipped model: fitted on everything
     final = _calibration(fitted_rows, features, args, ConfidenceCalibration)
@@ -380,6 +381,30 @@ def _targets(rows: list[dict[str, Any]], flagged: np.ndarray, out: Tee) -> None:
         f"{'met' if fa_d <= 0.1 * len(ok_default) else 'NOT met'})")
     out(f"- false alarms among the successes of every set: {fa_a} of {len(ok_all)} "
         f"({100 * fa_a / max(len(ok_all), 1):.1f} %)")
+
+
+def _probe_report(rows: list[dict[str, Any]], out: Tee) -> None:
+    """How the network-alone rows' polish probe (``signals.polish_probe_mm``, rows collected since it exists) reads
+    their error: its ratio to the TRE on the estimates 2-4 mm off, and the successes and failures on either side of
+    ``calibration.POLISH_PROBE_LIMIT_MM``."""
+    from monai_rigidreg.registration.calibration import POLISH_PROBE_LIMIT_MM
+
+    probed = [r for r in rows if r["refused"] is None and np.isfinite(float(
+        (r.get("signals") or {}).get("polish_probe_mm", float("nan"))))]
+    if not probed:
+        return
+    probe = np.array([r["signals"]["polish_probe_mm"] for r in probed])
+    err = np.array([r["error_mm"] for r in probed])
+    near = (err >= 2.0) & (err <= 4.0)
+    over = probe > POLISH_PROBE_LIMIT_MM
+    out(f"\n## The polish probe (network alone, {len(probed)} rows; limit {POLISH_PROBE_LIMIT_MM:g} mm)\n")
+    if near.any():
+        ratio = probe[near] / err[near]
+        out(f"- probe / TRE on the {int(near.sum())} estimates 2-4 mm off: {ratio.min():.2f}-{ratio.max():.2f}, "
+            f"median {np.median(ratio):.2f}")
+    fail = err >= 2.0
+    out(f"- failures over the limit: {int((over & fail).sum())} of {int(fail.sum())}; successes over it: "
+        f"{int((over & ~fail).sum())} of {int((~fail).sum())}")
 
 
 def _cases(rows: list[dict[str, Any]], conf: np.ndarray, reasons: list[list[str]], flagged: np.ndarray,

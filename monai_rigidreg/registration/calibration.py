@@ -39,7 +39,7 @@ estimate as a probe and discarded, would move it by more than this (mm, the mean
 less where it stops short (on 19 network-alone estimates 2-4 mm off, probe over TRE 0.54-0.96, median 0.86), so a
 2 mm error reads about 1.7 mm. At 1.5 mm the 286 re-collected calibration cases' 42 network-alone failures are all
 flagged and none of its 10 successes more than before (it was 2.0 mm: two failures, 2.07 and 3.42 mm, passed).
-Chosen on those cases (``docs/trust.md``, "The learned network alone")."""
+Chosen on those cases (``bench_confidence_calibration --fit``'s "polish probe" lines; ``docs/trust.md``)."""
 AMBIGUOUS_NCC_GAP = 0.1
 """A result is flagged ``"ambiguous"`` where its swapped-input estimate (the fallback's and the thorough path's
 twin) disagrees with it by more than :data:`~monai_rigidreg.registration.confidence.SWAP_AGREE_MM` and the two

@@ -51,9 +51,9 @@ resampled onto the CT's grid) do not count."""
 SWAPPED_NOISE_RATIO = 1.5
 """A fixed image whose box is smaller (in volume) than the moving one's and whose noise (:func:`image_noise_hu`) is
 more than this times the moving one's looks like the CBCT (:func:`swapped_reasons`, ``"noise"``): a CBCT is the
-noisier of the two. Measured on this repository's pairs (``docs/trust.md``): CT over CBCT 0.01-0.80 on 40 pairs of
-three real CTs (paper protocol and clinical geometry; the CTs measure 0.2-31 HU, their CBCTs 20-100 HU), the swapped
-pairs 1.26-144."""
+noisier of the two. Measured on this repository's pairs (``python -m benchmarks.confidence.bench_swap_noise``): CT
+over CBCT 0.01-0.80 on 40 pairs of three real CTs (paper protocol and clinical geometry; the CTs measure 0.2-31 HU,
+their CBCTs 20-100 HU), the swapped pairs 1.26-144."""
 TRUNCATED_RIM_SHARE = 0.2
 """A cylindrical field of view cuts the body when at least this share of its rim (4-12 mm inside the cylinder's
 edge) is tissue (:func:`truncated_cylinder`): a CBCT's does (0.58-0.71 on the benchmark CBCTs), a planning CT's
