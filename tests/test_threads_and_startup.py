@@ -63,7 +63,6 @@ NOT_ON_THE_REGISTER_PATH = {
     "tqdm.auto": "the batch's progress bar (registration.pairs, imported for --datalist only; tqdm itself comes "
                  "with torch.hub)",
     "monai_rigidreg.registration.pairs": "the batch (--datalist)",
-    "monai_rigidreg.networks.context_net": "the network in training (networks/__init__ exports on first use)",
     "monai_rigidreg.networks.rigid_net": "the reference design (ablation)",
     "monai_rigidreg.networks.transformer": "training's spatial transformer",
     "monai_rigidreg.evaluation": "the evaluation",

@@ -3,7 +3,7 @@ rigid spatial transformer and cascades.
 
 The names below are exported here on first use (``from monai_rigidreg.networks import TwoStageRigidNet``, a bundle
 config's ``monai_rigidreg.networks.TwoStageRigidNet``), so that ``monai-rigidreg register`` imports the networks it
-runs only, not the training network (``context_net``), the reference design (``rigid_net``) or the spatial
+runs only, not the reference design (``rigid_net``) or the spatial
 transformer of training.
 """
 

@@ -78,8 +78,10 @@ def test_metadata_has_model_zoo_fields():
     meta = json.loads((BUNDLE / "configs" / "metadata.json").read_text())
     jsonschema.validate(meta, METADATA_SCHEMA)
     fmt = meta["network_data_format"]
-    assert fmt["inputs"]["image"]["num_channels"] == 2
-    assert fmt["inputs"]["image"]["channel_def"] == {"0": "moving CBCT", "1": "fixed CT"}
+    assert fmt["inputs"]["image"]["num_channels"] == 3  # moving, fixed and the CT context (ContextCorrelationNet)
+    channels = fmt["inputs"]["image"]["channel_def"]
+    assert (channels["0"], channels["1"]) == ("moving CBCT", "fixed CT")
+    assert channels["2"].startswith("fixed CT on the context")
     assert fmt["outputs"]["pred"]["num_channels"] == 6
     inference = json.loads((BUNDLE / "configs" / "inference.json").read_text())
     assert fmt["inputs"]["image"]["spatial_shape"] == inference["network_size"]
@@ -217,7 +219,7 @@ def test_export_by_tracing_matches_the_eager_model(shipped_bundle, tmp_path):
     # the fine stage builds its grid from the input shape: exported by tracing at the network grid size
     run_bundle(["ckpt_export", "network_def", "--filepath", str(ts), "--ckpt_file",
                 str(shipped_bundle / "models" / "model.pt"), "--use_trace", "True", "--input_shape",
-                "[1, 2, 64, 64, 64]", *cfg], shipped_bundle)
+                "[1, 3, 64, 64, 64]", *cfg], shipped_bundle)
     traced = torch.jit.load(str(ts))
     eager, settings = load_bundle_network(shipped_bundle)
     grid_size = tuple(settings["network_size"])
@@ -228,7 +230,10 @@ def test_export_by_tracing_matches_the_eager_model(shipped_bundle, tmp_path):
     fixed = torch.nn.functional.avg_pool3d(torch.rand(1, 1, *grid_size, generator=g), 5, 1, 2)
     fixed = (fixed - fixed.min()) / (fixed.max() - fixed.min())
     moving = warp_volume_params(fixed, torch.tensor([[4.0, -2.0, 3.0, 2.0, 0.0, -3.0]]), grid)
-    x = torch.cat([moving, fixed], 1)
+    # the CT context (channel 2): the fixed volume pooled onto the context grid, as a network without one builds it
+    from monai_rigidreg.networks.context_net import context_from_fixed
+
+    x = torch.cat([moving, fixed, context_from_fixed(fixed, 2, grid_size)], 1)
     with torch.no_grad():
         want = eager(x)
         got = traced(x)

@@ -316,8 +316,10 @@ def test_fine_stage_switch_returns_the_regressions_own_estimate(fast_pair, tmp_p
     assert alone.details["fine_stage"] is False and full.details["fine_stage"] is True
     grid = registrar.network_grid(fixed, moving)
     m_t, f_t = registrar.preprocess(moving, grid), registrar.preprocess(fixed, grid)
+    # the shipped regression (ContextCorrelationNet) also reads the CT on its wider context grid, same centre
+    context = registrar.preprocess(fixed, registrar.context_grid_spec.centered(grid.center()))
     with torch.no_grad():
-        own = registrar.network.regression.forward_pair(m_t[None], f_t[None])[0].double().numpy()
+        own = registrar.network.regression.forward_pair(m_t[None], f_t[None], context[None])[0].double().numpy()
     np.testing.assert_allclose(alone.params, recenter_params(own, grid.center(), alone.center), atol=1e-4)
     assert np.abs(alone.params - full.params).max() > 0.01  # the fine stage does move the estimate
     out = tmp_path / "out"
@@ -332,9 +334,9 @@ def test_fine_stage_switch_returns_the_regressions_own_estimate(fast_pair, tmp_p
 def test_the_network_alone_is_flagged_where_the_last_level_would_move_it_far(fast_pair, monkeypatch):
     """``fine_stage=False``: the last level runs from the learned estimate as a probe (the estimate is kept), and how
     far it would move it, ``details.signals.polish_probe_mm``, is about the estimate's error: the shipped network
-    alone is about 4 mm off on the fast pair, the probe says so and the result is flagged ``"unpolished"``; an
-    estimate at the true motion is moved a fraction of a millimetre and not flagged for it; the default path runs no
-    probe."""
+    alone is about 5 mm off on the fast pair (a small phantom), the probe says so and the result is flagged
+    ``"unpolished"``; an estimate at the true motion is moved a fraction of a millimetre and not flagged for it;
+    the default path runs no probe."""
     from monai_rigidreg.core.geometry import recenter_params
     from monai_rigidreg.registration.calibration import POLISH_PROBE_LIMIT_MM
 
@@ -343,7 +345,8 @@ def test_the_network_alone_is_flagged_where_the_last_level_would_move_it_far(fas
     alone = register(fixed, moving, model=registrar, fine_stage=False, resample_moving=False)
     tre = _fast_pair_tre(fast_pair, alone)
     probe = alone.details["signals"]["polish_probe_mm"]
-    assert tre > POLISH_PROBE_LIMIT_MM and probe == pytest.approx(tre, abs=0.5)
+    # the probe under-reads the error a little (0.54-0.96 of it over the calibration cases, docs/trust.md)
+    assert tre > POLISH_PROBE_LIMIT_MM and 0.5 * tre < probe < 1.05 * tre
     assert "unpolished" in alone.details["flag_reasons"] and alone.flagged and alone.timings["polish_probe"] > 0
     truth = np.asarray(MOTION, dtype=np.float64)  # about the CT centre
 

@@ -69,13 +69,18 @@ def test_a_ct_covering_half_the_cbct_is_matched_within_it_through_the_command(fa
     assert check["overlap"] < 0.7 and "overlap" in check["reasons"] and result["details"]["fallback"]["run"]
     # the other starts' last levels: how far each ended from the kept estimate, and the image-match gap to the nearest
     # distinct one (the "ambiguous" flag's, with the twin's)
-    others = ov["other_starts"]
-    scores = [others["estimate_ncc"], *others["other_ncc"]]
-    kept = int(np.argmax(scores))
-    assert len(others["distance_mm"]) == len(scores) - 1 and kept == (scores.index(max(scores)))
-    rest = [v for k, v in enumerate(scores) if k != kept]
-    distinct = [abs(scores[kept] - v) for v, d in zip(rest, others["distance_mm"]) if d > overlap.AMBIGUOUS_DISTANCE_MM]
-    assert others.get("alternative_ncc_gap") == (pytest.approx(min(distinct), abs=2e-4) if distinct else None)
+    # (recorded where another start ran at all: with the shipped weights the lower half's search starts end apart
+    # from the network's estimate and get their last level; on the upper half they agree with it and none runs)
+    others = ov.get("other_starts")
+    assert others is not None or half == "upper", ov
+    if others is not None:
+        scores = [others["estimate_ncc"], *others["other_ncc"]]
+        kept = int(np.argmax(scores))
+        assert len(others["distance_mm"]) == len(scores) - 1 and kept == (scores.index(max(scores)))
+        rest = [v for k, v in enumerate(scores) if k != kept]
+        distinct = [abs(scores[kept] - v) for v, d in zip(rest, others["distance_mm"])
+                    if d > overlap.AMBIGUOUS_DISTANCE_MM]
+        assert others.get("alternative_ncc_gap") == (pytest.approx(min(distinct), abs=2e-4) if distinct else None)
     params = [result["params"][k] for k in ("tx", "ty", "tz", "rx", "ry", "rz")]
     error = _error_over(load_volume(cut), params, result["center"], truth)
     assert error < 3.0 or result["flagged"], (error, result["details"]["flag_reasons"])
