@@ -11,7 +11,7 @@ DATA_ENV_VAR = "MONAI_RIGIDREG_DATA"
 
 TRAINING_CTS = ("abdomen_pelvis_totalsegmentator_example_ct", "head_tcia_cptac_lscc_ct", "thorax_tcia_cptac_pda_ct",
                 "abdomen_pelvis_tcia_tcga_ov_ct")
-"""The real CTs (file stems in the data folder) the next network (``configs/train_context.json``) trains on:
+"""The real CTs (file stems in the data folder) the shipped network (``configs/train_context.json``) trains on:
 ``scripts/train_context_model.sh`` (which repeats the list; ``tests/test_training_cts.py`` keeps the two equal), the
 coarse pretraining and the context network's ablation scripts."""
 

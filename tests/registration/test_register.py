@@ -317,7 +317,7 @@ def test_fine_stage_switch_returns_the_regressions_own_estimate(fast_pair, tmp_p
     grid = registrar.network_grid(fixed, moving)
     m_t, f_t = registrar.preprocess(moving, grid), registrar.preprocess(fixed, grid)
     # the shipped regression (ContextCorrelationNet) also reads the CT on its wider context grid, same centre
-    context = registrar.preprocess(fixed, registrar.context_grid_spec.centered(grid.center()))
+    context = registrar._context(fixed, grid, None)
     with torch.no_grad():
         own = registrar.network.regression.forward_pair(m_t[None], f_t[None], context[None])[0].double().numpy()
     np.testing.assert_allclose(alone.params, recenter_params(own, grid.center(), alone.center), atol=1e-4)
