@@ -60,12 +60,12 @@ grid's points, ``details.native_level.change_mm``): a converged network estimate
 millimetre; a larger move says the network was not at the images' optimum."""
 LEAD_RANGE_MM = 30.0
 """The check fails where the estimate translates the CBCT's centre by more than this along any axis (mm). The
-shipped network (bundle 0.5.0) was trained on motions up to 60 mm per axis, but 30 % of its samples lie beyond
+shipped network was trained on motions up to 60 mm per axis, but 30 % of its samples lie beyond
 30 mm and on the held-out clinical-geometry cases of 40-60 mm it is right in only some (the bundle's
 ``docs/context_network.md``): beyond 30 mm the search checks it."""
 LEAD_RANGE_DEG = 45.0
-"""Likewise for the rotation angles (degrees): the shipped network's training range on all three axes at once
-(bundle 0.5.0; 30 degrees for the 0.3-0.4 network). The paper protocol's 30-degree cases stay on the led path."""
+"""Likewise for the rotation angles (degrees): the shipped network's training range on all three axes at once.
+The paper protocol's 30-degree cases stay on the led path."""
 
 
 class LeadPath:
