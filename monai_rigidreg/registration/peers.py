@@ -66,11 +66,13 @@ PEER_METHODS = ("ants", "greedy")
 
 _DISTRIBUTIONS = {"ants": "antspyx", "greedy": "picsl-greedy"}
 
-CONVENTION_TOLERANCE = (0.3, 0.5)
+CONVENTION_TOLERANCE = (0.3, 1.0)
 """Largest error of :func:`check_convention`: mm for each translation, degrees for each rotation. The tools stop
-within 0.25 degrees (greedy) and 0.45 degrees (ANTs) of the known rotations on that pair (their optimizers' own
+within 0.25 degrees (greedy) and 0.4-0.75 degrees (ANTs) of the known rotations on that pair (their optimizers' own
 stopping rules: the image match is best at the known motion to 0.1 degrees, and SimpleITK's Mattes MI ends within
-0.1); a convention error misses by 3 or more."""
+0.1). ANTs' end point depends on its thread count (ry off by 0.42 / 0.45 / 0.62 / 0.44 degrees with
+``ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS`` 1 / 2 / 4 / 8) and, multithreaded, on the machine's load (0.73 in one loaded
+test run), so a 0.5-degree limit failed a right convention by chance; a convention error misses by 3 or more."""
 
 
 def _installed(distribution: str) -> bool:

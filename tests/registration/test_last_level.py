@@ -196,3 +196,31 @@ def test_refine_native_sums_over_the_field_of_view_only_where_it_leaves_enough_o
     box = np.stack(np.meshgrid(*[np.linspace(-50, 50, 5)] * 3, indexing="ij"), -1).reshape(-1, 3) + iso
     assert _mean_distance(refined, dense, box) < 1e-4
     assert _mean_distance(refined, truth, box) < 0.3 and _mean_distance(full, truth, box) < 0.5
+
+
+def test_the_last_level_runs_again_until_a_pass_moves_the_estimate_by_half_a_millimetre():
+    """Started 13 mm (mean over the box) from the truth, one pass of four Gauss-Newton steps stops short (6.7 mm
+    left when written); the registrar's last level runs again from its own result until a pass moves it by at most
+    NATIVE_CONVERGED_MM and ends at the truth, recording the passes and the total move."""
+    from monai_rigidreg.registration.last_level import NATIVE_CONVERGED_MM, NATIVE_MAX_PASSES
+    from monai_rigidreg.registration.registrar import RigidRegistrar
+
+    registrar = RigidRegistrar.from_bundle(device="cpu")
+    iso = np.array([10.0, -20.0, 5.0])
+    ct, cbct, truth = _pair([6.0, -3.0, 4.0, 4.0, -3.0, 5.0], iso)
+    box = np.stack(np.meshgrid(*[np.linspace(-50, 50, 5)] * 3, indexing="ij"), -1).reshape(-1, 3) + iso
+    grid = Grid.centered((64, 64, 64), (2.0,) * 3, iso)
+    start = truth @ params_to_matrix([8.0, -6.0, 5.0, 6.0, -4.0, 5.0], iso)
+    fov = cylindrical_fov_mask(cbct)
+    one, one_detail = registrar._native(ct, cbct, start, fov, [], grid, converge=False)
+    assert one_detail["passes"] == 1 and one_detail["last_pass_mm"] == one_detail["change_mm"]
+    assert _mean_distance(one, truth, box) > 3.0
+    refined, detail = registrar._native(ct, cbct, start, fov, [], grid)
+    assert 1 < detail["passes"] <= NATIVE_MAX_PASSES
+    assert detail["last_pass_mm"] <= NATIVE_CONVERGED_MM
+    assert _mean_distance(refined, truth, box) < 0.2
+    # the total move is from the start, not the last pass's
+    assert detail["change_mm"] > _mean_distance(start, truth, box) - 2.0
+    # at the truth one pass suffices
+    _, stay = registrar._native(ct, cbct, truth, fov, [], grid)
+    assert stay["passes"] == 1 and stay["last_pass_mm"] < NATIVE_CONVERGED_MM
