@@ -139,14 +139,18 @@ def _json_default(v: Any) -> Any:
 # ---------------------------------------------------------------------------------------------------------------
 def load_rows(paths: list[Path]) -> list[dict[str, Any]]:
     """The collected rows; a row collected before ``signals.alternative_ncc_gap`` existed gets it from its
-    ``swap_check`` (the same two image-match scores, as the registrar now records them), except the learned network
-    alone's (``paper_regression``), where the verdict does not use it (``calibration.AMBIGUOUS_NCC_GAP``)."""
+    ``swap_check`` (the same two image-match scores, as the registrar now records them) where the twin lay more than
+    ``confidence.AMBIGUOUS_TWIN_MM`` away, except the learned network alone's (``paper_regression``), where the verdict
+    does not use it (``calibration.AMBIGUOUS_NCC_GAP``)."""
+    from monai_rigidreg.registration.confidence import AMBIGUOUS_TWIN_MM
+
     rows = []
     for path in paths:
         rows += [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     for r in rows:
         check, signals = r.get("swap_check"), r.get("signals")
-        if check and signals is not None and "alternative_ncc_gap" not in signals and r["set"] != "paper_regression":
+        if (check and signals is not None and "alternative_ncc_gap" not in signals and r["set"] != "paper_regression"
+                and check["swap_tre_mm"] > AMBIGUOUS_TWIN_MM):
             signals["alternative_ncc_gap"] = round(abs(check["estimate_ncc"] - check["swapped_ncc"]), 4)
     return rows
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["CALIBRATION_FILE", "POLISH_PROBE_LIMIT_MM", "AMBIGUOUS_NCC_GAP",
+__all__ = ["CALIBRATION_FILE", "POLISH_PROBE_LIMIT_MM", "AMBIGUOUS_NCC_GAP", "UNCONVERGED_MM",
            "FEATURES", "FEATURE_SIGNS", "ConfidenceCalibration", "load_calibration", "verdict",
            "UNCALIBRATED_MEANING"]
 
@@ -42,11 +42,19 @@ flagged and none of its 10 successes more than before (it was 2.0 mm: two failur
 Chosen on those cases (``bench_confidence_calibration --fit``'s "polish probe" lines; ``docs/trust.md``)."""
 AMBIGUOUS_NCC_GAP = 0.1
 """A result is flagged ``"ambiguous"`` where its swapped-input estimate (the fallback's and the thorough path's
-twin) disagrees with it by more than :data:`~monai_rigidreg.registration.confidence.SWAP_AGREE_MM` and the two
+twin) disagrees with it by more than :data:`~monai_rigidreg.registration.confidence.AMBIGUOUS_TWIN_MM` and the two
 match the images (the field of view's NCC, the score that chooses between them) within this of each other
 (``details.signals.alternative_ncc_gap``): two distant poses fit about equally well, and the images do not settle
 which is right (a short head CT, another patient's anatomy, a deformed pair without the search). Chosen on the
 calibration's cases (``docs/trust.md``)."""
+UNCONVERGED_MM = 1.0
+"""A result is flagged ``"unconverged"`` where the last pass of the last level still moved the estimate by more than
+this (mm, the mean over the network grid's points, ``details.signals.last_pass_mm``): the last level runs again until
+a pass moves it by at most :data:`~monai_rigidreg.registration.last_level.NATIVE_CONVERGED_MM` (0.5 mm), so this
+happens only where its passes ran out (:data:`~monai_rigidreg.registration.last_level.NATIVE_MAX_PASSES`) with the
+estimate still travelling: no image optimum was reached. On the 286 calibration cases collected with bundle 0.5.0 it
+caught a 3.9 mm failure every other signal passed (a CT covering 31 % of the CBCT; last pass 3.7 mm) and flagged one
+right result (0.8 mm, last pass 2.8 mm); the failures it fired on were otherwise flagged too (``docs/trust.md``)."""
 UNCALIBRATED_MEANING = ("an uncalibrated score: the weakest of the failure signals, each mapped through a logistic "
                         "that gives 0.5 at its hand-set limit (not a probability)")
 
@@ -184,8 +192,10 @@ def verdict(signals: dict[str, Any], calibration: ConfidenceCalibration | None, 
     (with ``swap_allowed``) and ``overlap``. Reasons: ``"not_hu"`` and ``"swapped"`` (confidence 0: the signals are
     calibrated on HU, and swapped inputs give the inverse transform), ``"overlap"`` (below ``overlap_flag_below``),
     ``"unpolished"`` (the learned network alone, ``fine_stage=False``, whose estimate the last level would move by
-    more than :data:`POLISH_PROBE_LIMIT_MM`: ``polish_probe_mm``), ``"ambiguous"`` (the swapped-input estimate lies
-    more than :data:`~monai_rigidreg.registration.confidence.SWAP_AGREE_MM` away and the two match the images within
+    more than :data:`POLISH_PROBE_LIMIT_MM`: ``polish_probe_mm``), ``"unconverged"`` (the last level's last pass still
+    moved the estimate by more than :data:`UNCONVERGED_MM`: ``last_pass_mm``), ``"ambiguous"`` (the swapped-input
+    estimate lies more than :data:`~monai_rigidreg.registration.confidence.AMBIGUOUS_TWIN_MM` away, or another start's
+    more than :data:`~monai_rigidreg.registration.overlap.AMBIGUOUS_DISTANCE_MM`, and the two match the images within
     :data:`AMBIGUOUS_NCC_GAP`: ``alternative_ncc_gap``; not for the network alone), ``"rule"`` (a signal past its
     hand-set limit: the rule score below ``rule_threshold``, where the calibration keeps the rule, ``rule_flags``),
     ``"confidence"`` (the
@@ -206,6 +216,8 @@ def verdict(signals: dict[str, Any], calibration: ConfidenceCalibration | None, 
         reasons.append("unpolished")
     if _finite(signals.get("alternative_ncc_gap"), math.inf) < AMBIGUOUS_NCC_GAP and "polish_probe_mm" not in signals:
         reasons.append("ambiguous")  # (not for the learned network alone: neither estimate is at an image optimum)
+    if _finite(signals.get("last_pass_mm"), 0.0) > UNCONVERGED_MM:
+        reasons.append("unconverged")
     if rule < rule_threshold and (calibration is None or calibration.rule_flags):
         reasons.append("rule")
     if confidence < threshold:

@@ -6,10 +6,8 @@ whether a small perturbation of the estimate aligns edges better (a correct esti
 region, e.g. ``--roi``, the edges inside it only), whether the estimate with the inputs swapped agrees with the inverse
 of this one, and how much of the CT's tissue it puts on CBCT air (:func:`tissue_on_air`: a gross failure, wherever its
 edge optimum lies); with ``--roi`` a fourth, computed on the images by the registrar: how far the estimate leaves the
-region's structures from where the CBCT shows them (:mod:`monai_rigidreg.registration.region_check`). The first two are
-calibrated on simulated pairs with deliberately spoiled estimates (``benchmarks/confidence/bench_confidence.py``), the
-third on the clinical-geometry pairs (``benchmarks/confidence/bench_confidence_clinical.py --spoil``), the fourth on the
-clinical-geometry deformed pairs (``bench_confidence_clinical.py --groups deformed``).
+region's structures from where the CBCT shows them (:mod:`monai_rigidreg.registration.region_check`). Their limits:
+``benchmarks/confidence/bench_confidence.py`` (spoiled estimates) and ``bench_confidence_clinical.py``.
 
 A disagreement with the swapped-input estimate does not say which of the two is wrong. Above
 :data:`SWAP_AGREE_MM` the registrar scores both on the images, as it chooses between its starts, and trusts the
@@ -47,6 +45,7 @@ if TYPE_CHECKING:
     from monai_rigidreg.registration.state import Background, NetworkRun, RegistrationState
 
 __all__ = ["CONFIDENCE_THRESHOLD", "FLAG_REASON_TEXT", "LOCAL_GAIN_LIMIT", "EDGE_SPACING_MM", "SWAP_AGREE_MM",
+           "AMBIGUOUS_TWIN_MM",
            "TISSUE_ON_AIR_LIMIT", "TISSUE_HU", "AIR_HU", "cylindrical_fov_mask", "tissue_on_air", "fov_ncc",
            "confidence_score", "assess_estimate", "swap_inputs", "ConfidenceStage"]
 
@@ -64,6 +63,7 @@ FLAG_REASON_TEXT = {
     "confidence": "the calibrated confidence is low",
     "ambiguous": "another estimate far from this one matches the images about as well",
     "unpolished": "the last level would move the learned network's estimate too far",
+    "unconverged": "the last level did not settle on a pose",
 }
 """``details.flag_reasons`` in words, for the log."""
 LOCAL_GAIN_LIMIT = 0.01
@@ -83,6 +83,11 @@ SWAP_AGREE_MM = 3.0
 the images (the CBCT field of view's NCC with the CT mapped into it, as it chooses between starts): a better
 swapped estimate replaces the estimate (``details.start == "swapped"``), a worse one does not count against it
 (``details.signals.swap_counted`` false)."""
+AMBIGUOUS_TWIN_MM = 6.0
+"""The swapped-input estimate counts for the ``"ambiguous"`` flag (``calibration.AMBIGUOUS_NCC_GAP``) only beyond this
+distance (mm): the twin is the network's unpolished estimate, the estimate ran the last level to convergence, so a
+twin a few mm away that matches almost as well sits in the same basin (three right results flagged by twins 3.05-3.62
+mm away in the bundle 0.5.0 calibration; the failures it flagged had it 6.7 mm or more away; ``docs/trust.md``)."""
 
 
 def cylindrical_fov_mask(image: sitk.Image, margin_mm: float = 2.0) -> sitk.Image:
@@ -386,6 +391,8 @@ class ConfidenceStage:
         signals["rule_score"] = signals.pop("confidence")
         if not state.staged:  # the learned network alone: how far the last level would move it (not applied)
             signals["polish_probe_mm"] = self._polish_probe(state)
+        elif "last_pass_mm" in details.get("native_level", {}):  # calibration.UNCONVERGED_MM
+            signals["last_pass_mm"] = float(details["native_level"]["last_pass_mm"])
         overlap = self._overlap_report(state, params_to_matrix(state.params, state.run.grid.center()))
         if np.isfinite(overlap):
             signals["overlap"] = overlap
@@ -440,20 +447,16 @@ class ConfidenceStage:
             swapped = run.start @ params_to_matrix(signals.pop("swap_params"), grid_center)
             if not signals["swap_tre_mm"] > SWAP_AGREE_MM:
                 break
-            # the two estimates disagree: the one whose CBCT field of view matches the CT better is trusted (the rule
-            # that chooses between starts); a better swapped estimate replaces this one, once (not after --refine,
-            # which the user asked to start from the network's estimate, and not for the learned network alone,
-            # fine_stage=False, which must stay measurable as it is).
-            # Scored inside the match region even when the region only weighted the last level: the estimate judged
-            # here is the region's (after that level). Over the whole view instead, the twin (a whole-view network
-            # estimate) tends to win on deformed anatomy and its disagreement counts (seed-2500 deformed pairs: false
-            # alarms 2 -> 3 of 7; docs/results.md, "Confidence")
+            # they disagree: the one whose field of view matches the CT better is trusted; a better twin replaces the
+            # estimate once (not after --refine, nor for the network alone). Scored inside the match region: over the
+            # whole view the twin tends to win on deformed anatomy (false alarms 2 -> 3 of 7; docs/results.md)
             s_est, s_swap = self._image_match(fixed_img, moving_img, fov_img,
                                               [params_to_matrix(params, grid_center), swapped],
                                               weight_img if weight_img is not None else domain)
             check = {"estimate_ncc": round(s_est, 4), "swapped_ncc": round(s_swap, 4),
                      "swap_tre_mm": round(signals["swap_tre_mm"], 2)}
-            if alternative_gap is None:  # the two estimates the images chose between (calibration.AMBIGUOUS_NCC_GAP)
+            if alternative_gap is None and signals["swap_tre_mm"] > AMBIGUOUS_TWIN_MM:
+                # the two estimates the images chose between (calibration.AMBIGUOUS_NCC_GAP), where distinct poses
                 alternative_gap = abs(float(s_est) - float(s_swap))
             if s_swap > s_est and may_replace and not replaced:
                 replaced = True
@@ -466,9 +469,8 @@ class ConfidenceStage:
                 details["start"] = "swapped"
                 continue
             details.setdefault("swap_check", {**check, "replaced": False})
-            # a worse twin does not count against the estimate, unless the estimate is itself a replacing twin: then
-            # the two directions kept disagreeing and neither settles the pose (a clinical-geometry head pair ended
-            # 9.3 mm off that way, every other signal reading well; docs/results.md, "Confidence")
+            # a worse twin does not count, unless the estimate is itself a replacing twin: then neither settles the
+            # pose (a clinical head pair ended 9.3 mm off that way; docs/results.md, "Confidence")
             signals["swap_counted"] = bool(s_swap >= s_est) or replaced
             if replaced:
                 details["swap_check"]["after_replacement"] = check

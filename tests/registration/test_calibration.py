@@ -13,6 +13,7 @@ from monai_rigidreg.registration.calibration import (
     AMBIGUOUS_NCC_GAP,
     CALIBRATION_FILE,
     FEATURES,
+    UNCONVERGED_MM,
     ConfidenceCalibration,
     load_calibration,
     verdict,
@@ -59,6 +60,10 @@ def test_the_verdict_rules_and_the_cap_below_the_flag_threshold():
     assert verdict({**ok, "alternative_ncc_gap": 0.01, "polish_probe_mm": 0.5}, cal, 0.5, 0.35)[1] == []
     assert verdict({**ok, "polish_probe_mm": 2.5}, cal, 0.5, 0.35)[1] == ["unpolished"]
     assert verdict({**ok, "polish_probe_mm": 1.5}, cal, 0.5, 0.35)[1] == []
+    # the last level's passes ran out with the estimate still moving: no image optimum reached
+    conf, reasons = verdict({**ok, "last_pass_mm": UNCONVERGED_MM + 0.5}, cal, 0.5, 0.35)
+    assert reasons == ["unconverged"] and conf == pytest.approx(0.79)
+    assert verdict({**ok, "last_pass_mm": UNCONVERGED_MM}, cal, 0.5, 0.35)[1] == []
     with pytest.raises(ValueError, match="unknown features"):
         ConfidenceCalibration("t", "x", ("no_such_feature",), (1.0,), 0.0, 0.5)
 
