@@ -86,8 +86,9 @@ swapped estimate replaces the estimate (``details.start == "swapped"``), a worse
 AMBIGUOUS_TWIN_MM = 6.0
 """The swapped-input estimate counts for the ``"ambiguous"`` flag (``calibration.AMBIGUOUS_NCC_GAP``) only beyond this
 distance (mm): the twin is the network's unpolished estimate, the estimate ran the last level to convergence, so a
-twin a few mm away that matches almost as well sits in the same basin (three right results flagged by twins 3.05-3.62
-mm away in the bundle 0.5.0 calibration; the failures it flagged had it 6.7 mm or more away; ``docs/trust.md``)."""
+twin a few mm away that matches almost as well sits in the same basin (a first collection with bundle 0.5.0's
+weights: three right results flagged by twins 3.05-3.62 mm away; the failures it flagged had it 6.7 mm or more away,
+or another flag; ``docs/trust.md``)."""
 
 
 def cylindrical_fov_mask(image: sitk.Image, margin_mm: float = 2.0) -> sitk.Image:

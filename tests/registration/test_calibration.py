@@ -35,8 +35,13 @@ def test_the_shipped_calibration_is_a_versioned_fitted_artefact():
     good = {"local_gain": 0.0, "swap_tre_mm": 0.3, "swap_counted": True, "tissue_on_air": 0.0, "ncc_after": 0.9,
             "edge_ncc": 0.9, "overlap": 1.0, "rule_score": 0.97}
     bad = {**good, "swap_tre_mm": 12.0, "local_gain": 0.03, "tissue_on_air": 0.1, "rule_score": 0.0}
-    assert cal.probability(good) > cal.flag_below > cal.probability(bad)
-    assert 0.0 <= cal.probability(bad) <= cal.probability(good) <= 1.0
+    assert 0.0 <= cal.probability(bad) <= cal.probability(good) <= 1.0  # monotone: worse signals never raise it
+    # what a user sees (the verdict with the shipped artefact): the good pair passes, the bad one is flagged; a poor
+    # edge match alone lowers the calibrated confidence below the flag
+    good_conf, good_reasons = verdict(good, cal, 0.5, 0.2)
+    bad_conf, bad_reasons = verdict(bad, cal, 0.5, 0.2)
+    assert good_reasons == [] and good_conf > cal.flag_below > bad_conf and bad_reasons
+    assert cal.probability({**good, "edge_ncc": 0.0}) < cal.flag_below
 
 
 def test_the_verdict_rules_and_the_cap_below_the_flag_threshold():
