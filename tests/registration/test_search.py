@@ -150,14 +150,15 @@ def _box_points(lo, hi, n=5):
     return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
 
 
-def test_default_registration_recovers_60mm_40deg_and_80deg(ct, registrar):
+def test_default_registration_recovers_60mm_40deg_and_90deg(ct, registrar):
     # 60 mm and 40 degrees about z: within the learned network's own capture range (trained to 60 mm / 45 degrees)
     truth = [38.0, -36.0, 28.0, 0.0, 0.0, 40.0]  # |t| = 60 mm about the isocentre
     pts = _box_points(ISO - 40, ISO + 40)
     res = registrar(ct, _cbct(ct, params_to_matrix(truth, ISO), seed=2), resample_moving=False, global_init=False)
     assert _tre(res, truth, pts) < 1.0 and not res.flagged
-    # 80 degrees about z: beyond it; the default path's check fails and the global search's candidates recover it
-    truth = [0.0, 0.0, 0.0, 0.0, 0.0, 80.0]
+    # 90 degrees about z: beyond it (with the converging last level the identity's run recovers 80 degrees); the
+    # default path's check fails and the global search's candidates recover it
+    truth = [0.0, 0.0, 0.0, 0.0, 0.0, 90.0]
     cbct = _cbct(ct, params_to_matrix(truth, ISO), seed=2)
     without = registrar(ct, cbct, resample_moving=False, global_init=False)
     assert _tre(without, truth, pts) > 10.0 and without.flagged
@@ -175,7 +176,7 @@ def test_the_network_starts_from_several_candidates_when_the_best_score_is_a_dec
     and the better image match (the true basin) wins; details say which rank and list every start's match."""
     import monai_rigidreg.registration.search as reg_mod
 
-    truth = [0.0, 0.0, 0.0, 0.0, 0.0, 80.0]  # beyond the network's own range: the search's candidates are needed
+    truth = [0.0, 0.0, 0.0, 0.0, 0.0, 90.0]  # beyond the network's own range: the search's candidates are needed
     cbct = _cbct(ct, params_to_matrix(truth, ISO), seed=2)
     pts = _box_points(ISO - 40, ISO + 40)
     real = reg_mod.global_search
