@@ -612,22 +612,25 @@ def test_a_better_swapped_estimate_replaces_a_wrong_one(fast_pair, shipped_regis
     assert not res.flagged
 
 
-def test_a_worse_swapped_estimate_does_not_count_against_a_right_one(fast_pair, shipped_registrar, monkeypatch):
-    """The swapped-input estimate is made 15 mm wrong: it disagrees, matches the images worse, so the estimate
-    stays (right) and the disagreement does not flag it; the same disagreement counted would."""
+def _offset_twin(monkeypatch, offset) -> None:
+    """The swapped-input estimate moved by ``offset`` (params, mm / degrees), wherever it is made: started beside
+    the last level (``swapped``) or computed in the check (``estimate``)."""
     import monai_rigidreg.registration.confidence as conf_mod
 
-    real = conf_mod.assess_estimate
+    real, offset = conf_mod.assess_estimate, np.asarray(offset, dtype=np.float64)
 
-    offset = np.array([0.0, 15.0, 0, 0, 0, 0])
-
-    def wrong_swap(moving_t, fixed_t, grid, params, fov, estimate=None, swapped=None, **kwargs):
-        # the swapped estimate is started beside the last level (swapped) or computed here (estimate): spoil both
-        assert swapped is not None  # the default path starts it early
+    def moved(moving_t, fixed_t, grid, params, fov, estimate=None, swapped=None, **kwargs):
+        assert swapped is not None  # the thorough path starts it early
         spoiled = None if estimate is None else (lambda m, f: estimate(m, f) + offset)
         return real(moving_t, fixed_t, grid, params, fov, spoiled, swapped=lambda: swapped() + offset, **kwargs)
 
-    monkeypatch.setattr("monai_rigidreg.registration.confidence.assess_estimate", wrong_swap)
+    monkeypatch.setattr(conf_mod, "assess_estimate", moved)
+
+
+def test_a_worse_swapped_estimate_does_not_count_against_a_right_one(fast_pair, shipped_registrar, monkeypatch):
+    """The swapped-input estimate is made 15 mm wrong: it disagrees, matches the images worse, so the estimate
+    stays (right) and the disagreement does not flag it; the same disagreement counted would."""
+    _offset_twin(monkeypatch, [0.0, 15.0, 0, 0, 0, 0])
     res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, thorough=True,
                             global_init=False)
     check = res.details["swap_check"]
@@ -648,14 +651,7 @@ def test_a_twin_a_few_mm_away_is_not_a_distinct_pose(fast_pair, shipped_registra
     recorded as a distinct pose and does not flag the result ``ambiguous``."""
     import monai_rigidreg.registration.confidence as conf_mod
 
-    real = conf_mod.assess_estimate
-    offset = np.array([0.0, 4.5, 0, 0, 0, 0])
-
-    def near_swap(moving_t, fixed_t, grid, params, fov, estimate=None, swapped=None, **kwargs):
-        spoiled = None if estimate is None else (lambda m, f: estimate(m, f) + offset)
-        return real(moving_t, fixed_t, grid, params, fov, spoiled, swapped=lambda: swapped() + offset, **kwargs)
-
-    monkeypatch.setattr("monai_rigidreg.registration.confidence.assess_estimate", near_swap)
+    _offset_twin(monkeypatch, [0.0, 4.5, 0, 0, 0, 0])
     res = shipped_registrar(fast_pair["fixed"], fast_pair["moving"], resample_moving=False, thorough=True,
                             global_init=False)
     check = res.details["swap_check"]
