@@ -18,7 +18,6 @@ weight on the CT.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
@@ -251,18 +250,23 @@ class LastLevelStage:
         stage = self.network.fine_stage
         degree = self.native_bias_degree_roi if region else self.native_bias_degree
         sigma = stage.highpass_sigma_mm if self.native_highpass_sigma_mm is None else self.native_highpass_sigma_mm
-        refined, moves, points = matrix, [math.inf], None
-        while moves[-1] > NATIVE_CONVERGED_MM and len(moves) <= (NATIVE_MAX_PASSES if converge else 1):
-            start = refined
-            refined, native_grid = refine_native(
+
+        def one_pass(start: np.ndarray) -> tuple[np.ndarray, Grid]:
+            return refine_native(
                 fixed_img, moving_img, start, fov_img, weights, highpass_sigma_mm=sigma,
                 highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
                 bias_degree=degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
                 secant=getattr(stage, "secant", False), max_voxels=self.native_max_voxels)
-            points = grid_points(grid, 8) if points is None else points
+
+        refined, native_grid = one_pass(matrix)
+        points = grid_points(grid, 8)
+        moves = [matrix_distance_mm(refined, matrix, points)]  # each pass's move
+        while converge and moves[-1] > NATIVE_CONVERGED_MM and len(moves) < NATIVE_MAX_PASSES:
+            start = refined
+            refined, native_grid = one_pass(start)
             moves.append(matrix_distance_mm(refined, start, points))
+        change = moves[0] if len(moves) == 1 else matrix_distance_mm(refined, matrix, points)
         detail = {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size), "bias_degree": degree,
-                  "highpass_sigma_mm": float(sigma),
-                  "change_mm": round(matrix_distance_mm(refined, matrix, points), 3),
-                  "passes": len(moves) - 1, "last_pass_mm": round(moves[-1], 3)}
+                  "highpass_sigma_mm": float(sigma), "change_mm": round(change, 3),
+                  "passes": len(moves), "last_pass_mm": round(moves[-1], 3)}
         return refined, detail

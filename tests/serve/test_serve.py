@@ -420,9 +420,12 @@ def test_flagged_result_is_labelled_kept_and_retried_until_the_pacs_answers(pair
         reg = pydicom.dcmread(sends[0]["path"])  # kept on disk meanwhile
         assert reg.ContentLabel == "RIGIDREG_FLAGGED" and reg.ContentDescription.startswith("FLAGGED, review")
         assert "translation" in reg.ContentDescription and reg.SeriesDescription == reg.ContentDescription
-        # the store counts a failed send before the service logs it: wait for the third retry's event too
-        events = wait_for(lambda: (lambda ev: ev if sum("not sent to ORTHANC@" in e for e in ev) >= 3 else None)(
-            [e["text"] for e in store.events(50, cbct.series_uid)]), 30, 0.1, "three retry events")
+        def with_three_retries() -> list[str] | None:
+            # the store counts a failed send before the service logs it: wait for the third retry's event too
+            texts = [e["text"] for e in store.events(50, cbct.series_uid)]
+            return texts if sum("not sent to ORTHANC@" in t for t in texts) >= 3 else None
+
+        events = wait_for(with_three_retries, 30, 0.1, "three retry events")
         assert any("FLAGGED (translation" in e and "REG labelled RIGIDREG_FLAGGED" in e for e in events), events
         retries = [e for e in events if "not sent to ORTHANC@" in e]
         assert "retry in 0.2 s (attempt 1)" in retries[0] and "(attempt 3)" in retries[2] and "kept in" in retries[0]
