@@ -51,8 +51,8 @@ NATIVE_CONVERGED_MM = 0.5
 """The last level runs again from its own result while its latest pass moved the estimate by more than this (mm, the
 mean over the network grid's points), up to :data:`NATIVE_MAX_PASSES` passes. One pass (four Gauss-Newton steps, each
 re-using the CBCT sampled through the pass's start) stops short when it starts several millimetres away: on a
-clinical-geometry head pair without the search one pass moved the estimate 4.6 mm and left it 7.9 mm off, a second
-moved it 4.1 mm more; run until a pass moved it under 0.5 mm it ended 0.6 mm off (a CT cut at the isocentre: 9.0 ->
+clinical-geometry head pair without the search one pass moved the estimate 4.6 mm and left it 7.9 mm off; run until
+a pass moved it under 0.5 mm (6 passes, 15.8 mm in all) it ended 0.6 mm off (a CT cut at the isocentre: 9.0 ->
 1.1 mm). A converged estimate is moved a few tenths of a millimetre by the first pass, so most pairs run one pass.
 Measured with ``python -m benchmarks.confidence.bench_confidence_calibration`` (``docs/trust.md``)."""
 NATIVE_MAX_PASSES = 6
