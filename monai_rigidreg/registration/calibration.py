@@ -72,6 +72,14 @@ def _logit(p: float) -> float:
     return math.log(p / (1.0 - p))
 
 
+def _expected_tre(value: Any) -> float:
+    """``signals.expected_tre_mm`` for the ``log_expected_tre`` feature, in [0.005, 10] mm: not measured (no last
+    level, e.g. the learned network alone): 0.1 mm, about the default path's median; unconstrained (infinite): 10."""
+    if value == math.inf:
+        return 10.0
+    return min(max(_finite(value, 0.1), 0.005), 10.0)
+
+
 FEATURES: dict[str, Callable[[dict[str, Any]], float]] = {
     # the swapped-input estimate's disagreement (mm, log): an independent estimate's distance; not measured: 3 mm
     "log_swap_tre": lambda s: math.log(max(_finite(s.get("swap_tre_mm"), 3.0), 0.05)),
@@ -90,6 +98,8 @@ FEATURES: dict[str, Callable[[dict[str, Any]], float]] = {
     "overlap_deficit": lambda s: 1.0 - _finite(s.get("overlap"), 1.0),
     # the region check's median residual shift, in units of its limit (region_check.REGION_SHIFT_LIMIT_MM); no ROI: 0
     "region_shift": lambda s: min(_finite(s.get("region_shift_mm"), 0.0) / 3.0, 5.0),
+    # how precisely the last level's images fix the pose (registration.precision, log mm)
+    "log_expected_tre": lambda s: math.log(_expected_tre(s.get("expected_tre_mm"))),
     # the hand-set rule's score (confidence.confidence_score) as log-odds
     "rule_logit": lambda s: _logit(_finite(s.get("rule_score"), 0.5)),
 }
@@ -98,7 +108,7 @@ new transform gets a new name, so an older calibration file keeps its meaning.""
 
 FEATURE_SIGNS: dict[str, int] = {
     "log_swap_tre": -1, "log_swap_tre_counted": -1, "local_gain": -1, "tissue_on_air": -1, "ncc_after": +1,
-    "edge_ncc": +1, "overlap_deficit": -1, "region_shift": -1, "rule_logit": +1,
+    "edge_ncc": +1, "overlap_deficit": -1, "region_shift": -1, "rule_logit": +1, "log_expected_tre": -1,
 }
 """The sign each feature's coefficient may take: the confidence never rises as a failure signal gets worse (a larger
 disagreement, edge gain, tissue on air, uncovered tissue or region shift; a lower match). The fit

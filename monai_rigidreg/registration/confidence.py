@@ -40,6 +40,14 @@ from monai_rigidreg.registration.calibration import verdict
 from monai_rigidreg.registration.match_region import match_weight, weight_on_grid
 from monai_rigidreg.registration.overlap import OVERLAP_FLAG_BELOW
 from monai_rigidreg.registration.region_check import REGION_SHIFT_LIMIT_MM, block_shifts
+from monai_rigidreg.registration.tissue_air import (
+    AIR_HU,
+    DEEP_LIMIT,
+    TISSUE_HU,
+    TISSUE_ON_AIR_LIMIT,
+    deep_air_radius,
+    tissue_on_air,
+)
 
 if TYPE_CHECKING:
     from monai_rigidreg.registration.state import Background, NetworkRun, RegistrationState
@@ -70,14 +78,6 @@ LOCAL_GAIN_LIMIT = 0.01
 """Edge-alignment gain (see :func:`confidence_score`) above which an estimate is treated as likely wrong."""
 EDGE_SPACING_MM = 4.0
 """Resolution (mm) at which :meth:`RigidRegistrar.assess` compares edges (finer network grids are pooled to it)."""
-TISSUE_ON_AIR_LIMIT = 0.06
-"""Share of the CT's tissue in view put on CBCT air (:func:`tissue_on_air`) that scores 0.5 in
-:func:`confidence_score`. Measured on the 60 clinical-geometry pairs of two seeds, 1500 and 2500 (``python
--m benchmarks.confidence.bench_confidence_clinical --spoil``; ``docs/results.md``, "Confidence"): true poses at most
-0.041 (deformed anatomy included; 0.007 without deformation on the first set, 0.021 on the second), the network's gross
-failures 0.151 (thorax, 128 mm: caught by this signal alone), 0.063, 0.058 and 0.032 (caught by the edge test too);
-poses spoiled by 40 mm or 45 degrees a median of 0.11-0.20, by 20 mm or 20 degrees 0.03-0.08, but as little as
-0.000-0.005 for a shift along a body that looks alike along it (which the edge and swap tests must catch)."""
 SWAP_AGREE_MM = 3.0
 """Above this disagreement (mm) between an estimate and its swapped-input estimate, the registrar scores both on
 the images (the CBCT field of view's NCC with the CT mapped into it, as it chooses between starts): a better
@@ -119,51 +119,9 @@ def fov_ncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
     return float(masked_ncc(a.double()[None, None], b.double()[None, None], m[None, None])[0])
 
 
-TISSUE_HU = 0.0
-"""CT voxels above this (HU) are soft tissue or bone for :func:`tissue_on_air`. Fat (about -100 HU) is left out: a
-CBCT's scatter and beam-hardening shading pull it towards the air level, and with -200 HU here the true pose of a
-thorax pair tilted 37 degrees (seed 2500, large_002) scored 0.058 (``benchmarks/confidence/bench_confidence_clinical.py
---spoil`` run with this constant at -200)."""
-AIR_HU = -500.0
-"""CBCT voxels below this (HU) read as air or lung for :func:`tissue_on_air`. At -700 a CBCT's lung, lifted by
-scatter, no longer reads as air: the 128 mm thorax failure (seed 1500, large_004) scored 0.014 instead of 0.151 (the
-same benchmark run with this constant at -700)."""
-
-def tissue_on_air(
-    fixed: torch.Tensor, moved: torch.Tensor, fov: torch.Tensor, hu_range: tuple[float, float] = (-1000.0, 2000.0),
-) -> float:
-    """Fraction of the CT's tissue in the field of view that the estimate maps onto air in the CBCT.
-
-    Args:
-        fixed: ``[x, y, z]`` CT on the network grid, HU normalized from ``hu_range`` to ``[0, 1]`` (with the couch
-            excluded, its voxels outside the body are air already).
-        moved: ``[x, y, z]`` CBCT resampled through the estimate onto the same grid, normalized alike.
-        fov: ``[x, y, z]`` the CBCT's field of view on the grid (> 0.5 inside).
-        hu_range: the normalization window.
-
-    Returns the share of the voxels inside ``fov`` with CT above :data:`TISSUE_HU` whose CBCT reads below
-    :data:`AIR_HU` (NaN when fewer than 100 tissue voxels are in view). A gross failure puts CT tissue on the air
-    around the patient, on lung or on gas; a right pose leaves only the anatomy that changed between the scans (a
-    few percent on the deformed clinical-geometry pairs, ``benchmarks/confidence/bench_confidence_clinical.py``). Unlike
-    the edge test it does not depend on the estimate being near an optimum, only on where tissue and air lie.
-
-    It looks at the whole field of view, also with a match region (``--roi``): its calibration
-    (:data:`TISSUE_ON_AIR_LIMIT`) includes the deformed pairs registered with their ROI box. It expects the couch
-    removed from ``fixed`` (the registrar's default): with ``keep_couch`` the CT's couch counts as tissue wherever the
-    CBCT has none, which raises the signal by the couch's share of the tissue in view.
-    """
-    lo, hi = hu_range
-    tissue = (fixed > (TISSUE_HU - lo) / (hi - lo)) & (fov > 0.5)
-    n = int(tissue.sum())
-    if n < 100:
-        return float("nan")
-    air = moved < (AIR_HU - lo) / (hi - lo)
-    return float((tissue & air).sum()) / n
-
-
 def confidence_score(
     local_gain: float, swap_tre_mm: float, gain_ref: float = LOCAL_GAIN_LIMIT, tre_ref_mm: float = 3.0,
-    swap_counted: bool = True, tissue_on_air_share: float = float("nan"), air_ref: float = TISSUE_ON_AIR_LIMIT,
+    swap_counted: bool = True, tissue_on_air_share: float = float("nan"), air_ref: float = DEEP_LIMIT,
     region_shift_mm: float = float("nan"), region_ref_mm: float = REGION_SHIFT_LIMIT_MM,
 ) -> float:
     """Combine the failure signals into a score in [0, 1] (below 0.5: flagged).
@@ -176,8 +134,10 @@ def confidence_score(
       inverse of the estimate with the inputs swapped; ``tre_ref_mm`` gives 0.5. ``swap_counted=False``: the
       disagreement is resolved (the swapped estimate matched the images worse than the estimate, see
       :data:`SWAP_AGREE_MM`) and does not lower the score.
-    * ``tissue_on_air_share``: :func:`tissue_on_air` of the estimate; ``air_ref`` gives 0.5 (NaN: not measured, no
-      effect). A gross failure puts CT tissue on CBCT air whether or not the estimate sits at an edge optimum.
+    * ``tissue_on_air_share``: :func:`tissue_on_air` of the estimate on deep air (``tissue_on_air_deep``,
+      :data:`~monai_rigidreg.registration.tissue_air.DEEP_AIR_MM`); ``air_ref`` gives 0.5, the logistic's scale is
+      ``air_ref / 7.5`` (NaN: not measured, no effect). A gross failure puts CT tissue on CBCT air whether or not the
+      estimate sits at an edge optimum.
     * ``region_shift_mm``: with a region of interest, the length of the median residual shift of its structures
       (:func:`~monai_rigidreg.registration.region_check.block_shifts`); ``region_ref_mm`` gives 0.5 (NaN: not measured
       or too few blocks with structure, no effect).
@@ -190,7 +150,7 @@ def confidence_score(
 
     s_gain = falling(local_gain, gain_ref, 0.003, 0.0)
     s_swap = falling(swap_tre_mm, tre_ref_mm, 0.75, 1.0) if swap_counted else 1.0
-    s_air = falling(tissue_on_air_share, air_ref, 0.008, 1.0)
+    s_air = falling(tissue_on_air_share, air_ref, air_ref / 7.5, 1.0)
     s_region = falling(region_shift_mm, region_ref_mm, 0.25, 1.0)
     return float(min(s_gain, s_swap, s_air, s_region))
 
@@ -275,7 +235,8 @@ def assess_estimate(
             :mod:`~monai_rigidreg.registration.overlap`).
 
     Returns ``ncc_before``/``ncc_after`` (intensity NCC in the field of view), ``edge_ncc`` (NCC of gradient
-    magnitudes), ``tissue_on_air`` (:func:`tissue_on_air` of the estimate), ``local_gain`` and ``swap_tre_mm`` (see
+    magnitudes), ``tissue_on_air`` and ``tissue_on_air_deep`` (:func:`tissue_on_air` of the estimate, on every
+    and on deep CBCT air), ``local_gain`` and ``swap_tre_mm`` (see
     :func:`confidence_score`), ``confidence``, and with ``estimate`` or ``swapped`` also ``swap_params``: the
     inverse of the swapped estimate, ``[6]`` numpy, in the frame of ``params`` (the caller may score it as an
     alternative estimate, :data:`SWAP_AGREE_MM`).
@@ -297,7 +258,9 @@ def assess_estimate(
         moved0 = warp_volume_params(moving_t[None].float(), batch[:1], grid)[0, 0]
         fov_w = _supported(_placed_fov(fov, batch[:1], grid), fixed_support)
         out = {"ncc_before": fov_ncc(moving_t[0], fixed_f, fov), "ncc_after": fov_ncc(moved0, fixed_f, fov_w)}
-        out["tissue_on_air"] = tissue_on_air(fixed_f, moved0, erode(fov_w[None, None], (2, 2, 2))[0, 0], hu_range)
+        fov_in = erode(fov_w[None, None], (2, 2, 2))[0, 0]
+        out["tissue_on_air"] = tissue_on_air(fixed_f, moved0, fov_in, hu_range)
+        out["tissue_on_air_deep"] = tissue_on_air(fixed_f, moved0, fov_in, hu_range, deep_air_radius(grid.spacing))
         # away from the field-of-view border: the CBCT's own edge there (data to zero) is no anatomy, and the
         # candidates move it by up to a pooled voxel (erosion radius: that step plus the gradient stencil)
         r = 2 * factor + 1
@@ -330,7 +293,7 @@ def assess_estimate(
     else:
         out["swap_tre_mm"] = float("nan")
     out["confidence"] = confidence_score(out["local_gain"], out["swap_tre_mm"],
-                                         tissue_on_air_share=out["tissue_on_air"])
+                                         tissue_on_air_share=out["tissue_on_air_deep"])
     return out
 
 
@@ -394,6 +357,7 @@ class ConfidenceStage:
             signals["polish_probe_mm"] = self._polish_probe(state)
         elif "last_pass_mm" in details.get("native_level", {}):  # calibration.UNCONVERGED_MM
             signals["last_pass_mm"] = float(details["native_level"]["last_pass_mm"])
+            signals["expected_tre_mm"] = float(details["native_level"].get("expected_tre_mm", float("nan")))
         overlap = self._overlap_report(state, params_to_matrix(state.params, state.run.grid.center()))
         if np.isfinite(overlap):
             signals["overlap"] = overlap
@@ -495,6 +459,6 @@ class ConfidenceStage:
             signals["region_blocks"] = blocks.count
         signals["confidence"] = confidence_score(signals["local_gain"], signals["swap_tre_mm"],
                                                  swap_counted=signals.get("swap_counted", True),
-                                                 tissue_on_air_share=signals["tissue_on_air"],
+                                                 tissue_on_air_share=signals["tissue_on_air_deep"],
                                                  region_shift_mm=signals.get("region_shift_mm", float("nan")))
         return params, replaced, signals

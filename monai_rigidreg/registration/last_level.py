@@ -39,6 +39,7 @@ from monai_rigidreg.core.image_ops import erode
 from monai_rigidreg.networks.gauss_newton import alignment_features, gauss_newton_align
 from monai_rigidreg.registration.confidence import swap_inputs
 from monai_rigidreg.registration.match_region import weight_on_grid
+from monai_rigidreg.registration.precision import expected_tre_mm, pose_covariance
 from monai_rigidreg.registration.search import matrix_distance_mm
 
 if TYPE_CHECKING:
@@ -108,6 +109,7 @@ def refine_native(
     device: str | torch.device = "cpu",
     tolerance: tuple[float, float] | None = (0.01, 0.01),
     secant: bool = False,
+    report: dict[str, Any] | None = None,
 ) -> tuple[np.ndarray, Grid]:
     """Refine a fixed -> moving 4x4 ``matrix`` (LPS mm) at native resolution over the CBCT field of view.
 
@@ -129,6 +131,8 @@ def refine_native(
         device: where to compute.
         tolerance: ``(mm, degrees)``: stop early once a step is below both (``None``: all ``iterations``).
         secant: secant-scaled steps (see :func:`~monai_rigidreg.networks.gauss_newton.gauss_newton_align`).
+        report: a dict to fill with the result's ``expected_tre_mm``, ``residual_var`` and ``weighted_voxels``
+            (:func:`~monai_rigidreg.registration.precision.pose_covariance`; ``None``: not computed).
 
     Returns:
         ``(refined matrix, the grid used)``.
@@ -152,6 +156,10 @@ def refine_native(
     residual = gauss_newton_align(feats[:1], feats[1:], grid, eye, iterations=iterations, weight=w,
                                   moving_support=support, bias_degree=bias_degree, tolerance=tolerance,
                                   secant=secant, candidates=candidates, reach_mm=reach)
+    if report is not None:  # how precisely the images fix the pose at the result (registration.precision)
+        cov, s2, n = pose_covariance(feats[:1], feats[1:], grid, residual, w, support, bias_degree)
+        report.update(expected_tre_mm=round(expected_tre_mm(cov, grid), 4), residual_var=float(f"{s2:.4g}"),
+                      weighted_voxels=int(n))
     return matrix @ residual[0].cpu().numpy(), grid
 
 
@@ -246,17 +254,20 @@ class LastLevelStage:
         or ``--match bone``, is among ``weights``), run again from its result until a pass moves it by at most
         :data:`NATIVE_CONVERGED_MM` (``converge=False``: one pass). Returns the refined matrix and
         ``details.native_level``: the level's grid, bias degree, how far it moved the estimate in all (``change_mm``,
-        mean distance over the points of ``grid``, the network grid, mm), ``passes`` and ``last_pass_mm``."""
+        mean distance over the points of ``grid``, the network grid, mm), ``passes``, ``last_pass_mm`` and the last
+        pass's ``expected_tre_mm`` (:mod:`~monai_rigidreg.registration.precision`)."""
         stage = self.network.fine_stage
         degree = self.native_bias_degree_roi if region else self.native_bias_degree
         sigma = stage.highpass_sigma_mm if self.native_highpass_sigma_mm is None else self.native_highpass_sigma_mm
+
+        report: dict[str, Any] = {}
 
         def one_pass(start: np.ndarray) -> tuple[np.ndarray, Grid]:
             return refine_native(
                 fixed_img, moving_img, start, fov_img, weights, highpass_sigma_mm=sigma,
                 highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
                 bias_degree=degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
-                secant=getattr(stage, "secant", False), max_voxels=self.native_max_voxels)
+                secant=getattr(stage, "secant", False), max_voxels=self.native_max_voxels, report=report)
 
         refined, native_grid = one_pass(matrix)
         points = grid_points(grid, 8)
@@ -268,5 +279,5 @@ class LastLevelStage:
         change = moves[0] if len(moves) == 1 else matrix_distance_mm(refined, matrix, points)
         detail = {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size), "bias_degree": degree,
                   "highpass_sigma_mm": float(sigma), "change_mm": round(change, 3),
-                  "passes": len(moves), "last_pass_mm": round(moves[-1], 3)}
+                  "passes": len(moves), "last_pass_mm": round(moves[-1], 3), **report}
         return refined, detail

@@ -130,7 +130,8 @@ class LeadPath:
             reasons.append("range")
         state.details["lead_check"] = {
             "confidence": round(float(signals["confidence"]), 4), "local_gain": round(signals["local_gain"], 5),
-            "tissue_on_air": round(signals["tissue_on_air"], 4), "overlap": round(overlap, 4),
+            "tissue_on_air": round(signals["tissue_on_air"], 4),
+            "tissue_on_air_deep": round(signals["tissue_on_air_deep"], 4), "overlap": round(overlap, 4),
             "polish_mm": round(polish, 3), "max_translation_mm": round(max_t, 2), "max_rotation_deg": round(max_r, 2),
             "reasons": reasons}
         state.timings["lead_check"] = time.perf_counter() - t
