@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -52,7 +52,8 @@ from monai_rigidreg.registration.tissue_air import (
 if TYPE_CHECKING:
     from monai_rigidreg.registration.state import Background, NetworkRun, RegistrationState
 
-__all__ = ["CONFIDENCE_THRESHOLD", "FLAG_REASON_TEXT", "LOCAL_GAIN_LIMIT", "EDGE_SPACING_MM", "SWAP_AGREE_MM",
+__all__ = ["CONFIDENCE_THRESHOLD", "FLAG_REASON_TEXT", "LOCAL_GAIN_LIMIT", "EDGE_OFFSET_LIMIT", "EDGE_SPACING_MM",
+           "SWAP_AGREE_MM", "edge_offset",
            "AMBIGUOUS_TWIN_MM",
            "TISSUE_ON_AIR_LIMIT", "TISSUE_HU", "AIR_HU", "cylindrical_fov_mask", "tissue_on_air", "fov_ncc",
            "confidence_score", "assess_estimate", "swap_inputs", "ConfidenceStage"]
@@ -76,6 +77,13 @@ FLAG_REASON_TEXT = {
 """``details.flag_reasons`` in words, for the log."""
 LOCAL_GAIN_LIMIT = 0.01
 """Edge-alignment gain (see :func:`confidence_score`) above which an estimate is treated as likely wrong."""
+EDGE_OFFSET_LIMIT = 1.0
+"""The edge gain (:data:`LOCAL_GAIN_LIMIT`) flags only where the edge optimum lies further than this many probe steps
+from the estimate along some parameter, or has no optimum there (:func:`edge_offset`): one step is 2 mm or 2
+degrees, the success criterion's scale. On the 286 cases of bundle 0.5.0's calibration the right results the gain
+flagged had their optimum 0.55-0.85 steps away (four false alarms of the default path: partial overlap, a few
+thousand, or a few dozen, pooled voxels in view), the failures it caught 1.2 steps or more (most with no optimum
+along some parameter); ``docs/trust.md``."""
 EDGE_SPACING_MM = 4.0
 """Resolution (mm) at which :meth:`RigidRegistrar.assess` compares edges (finer network grids are pooled to it)."""
 SWAP_AGREE_MM = 3.0
@@ -119,10 +127,32 @@ def fov_ncc(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
     return float(masked_ncc(a.double()[None, None], b.double()[None, None], m[None, None])[0])
 
 
+def edge_offset(scores: Sequence[float]) -> float:
+    """How far the edge optimum lies from the estimate, in probe steps: ``scores`` are the edge NCC at the estimate
+    and at the twelve probes of :func:`assess_estimate` (each parameter minus and plus one step, in parameter
+    order); per parameter the vertex of the parabola through its three scores, ``|s+ - s-| / (2 (2 s0 - s+ - s-))``,
+    infinite where the scores do not curve down (no optimum along it); the largest of the six (NaN if any score is).
+
+    >>> edge_offset([1.0] + [0.9] * 12)
+    0.0
+    >>> edge_offset([1.0, 0.9, 1.1] + [0.9] * 10)
+    inf
+    """
+    s = np.asarray(scores, dtype=np.float64)
+    if s.shape != (13,) or not np.all(np.isfinite(s)):
+        return float("nan")
+    minus, plus = s[1::2] - s[0], s[2::2] - s[0]
+    curvature = -(minus + plus)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        offsets = np.where(curvature > 1e-9, np.abs(plus - minus) / (2.0 * curvature), np.inf)
+    return float(offsets.max())
+
+
 def confidence_score(
     local_gain: float, swap_tre_mm: float, gain_ref: float = LOCAL_GAIN_LIMIT, tre_ref_mm: float = 3.0,
     swap_counted: bool = True, tissue_on_air_share: float = float("nan"), air_ref: float = DEEP_LIMIT,
     region_shift_mm: float = float("nan"), region_ref_mm: float = REGION_SHIFT_LIMIT_MM,
+    edge_offset_steps: float = float("inf"),
 ) -> float:
     """Combine the failure signals into a score in [0, 1] (below 0.5: flagged).
 
@@ -130,6 +160,8 @@ def confidence_score(
       the estimate is perturbed by half a network voxel or 2 degrees along any parameter. A correct estimate sits
       at the optimum (gain about 0); calibrated on simulated pairs with deliberately spoiled estimates
       (``benchmarks/confidence/bench_confidence.py``), errors of a few mm or degrees give gains above ``gain_ref``.
+      It counts only where the edge optimum lies beyond the probe (``edge_offset_steps`` above
+      :data:`EDGE_OFFSET_LIMIT`, :func:`edge_offset`; the default, infinite, always counts it).
     * ``swap_tre_mm``: disagreement (mean TRE over the network grid, mm) between the forward estimate and the
       inverse of the estimate with the inputs swapped; ``tre_ref_mm`` gives 0.5. ``swap_counted=False``: the
       disagreement is resolved (the swapped estimate matched the images worse than the estimate, see
@@ -148,7 +180,7 @@ def confidence_score(
         """1 well below ``ref``, 0.5 at it, 0 well above (``width``: the logistic's scale); ``unmeasured`` for NaN."""
         return 1.0 / (1.0 + np.exp((value - ref) / width)) if np.isfinite(value) else unmeasured
 
-    s_gain = falling(local_gain, gain_ref, 0.003, 0.0)
+    s_gain = 1.0 if edge_offset_steps <= EDGE_OFFSET_LIMIT else falling(local_gain, gain_ref, 0.003, 0.0)
     s_swap = falling(swap_tre_mm, tre_ref_mm, 0.75, 1.0) if swap_counted else 1.0
     s_air = falling(tissue_on_air_share, air_ref, air_ref / 7.5, 1.0)
     s_region = falling(region_shift_mm, region_ref_mm, 0.25, 1.0)
@@ -281,6 +313,7 @@ def assess_estimate(
     edge, best = scores[0], max(scores)
     out["edge_ncc"] = edge
     out["local_gain"] = float(best - edge)
+    out["edge_offset"] = edge_offset(scores)
     if swapped is not None or estimate is not None:
         if swapped is not None:
             twin = swapped()
@@ -293,7 +326,8 @@ def assess_estimate(
     else:
         out["swap_tre_mm"] = float("nan")
     out["confidence"] = confidence_score(out["local_gain"], out["swap_tre_mm"],
-                                         tissue_on_air_share=out["tissue_on_air_deep"])
+                                         tissue_on_air_share=out["tissue_on_air_deep"],
+                                         edge_offset_steps=out["edge_offset"])
     return out
 
 
@@ -460,5 +494,6 @@ class ConfidenceStage:
         signals["confidence"] = confidence_score(signals["local_gain"], signals["swap_tre_mm"],
                                                  swap_counted=signals.get("swap_counted", True),
                                                  tissue_on_air_share=signals["tissue_on_air_deep"],
+                                                 edge_offset_steps=signals["edge_offset"],
                                                  region_shift_mm=signals.get("region_shift_mm", float("nan")))
         return params, replaced, signals

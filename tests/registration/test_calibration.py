@@ -93,11 +93,12 @@ def _signal_grid():
     """Signals from good to bad on each failure signal in turn (the others good), and the extremes a registration
     can report (NaN where a signal was not measurable, infinities, missing keys)."""
     good = {"local_gain": 0.0, "swap_tre_mm": 0.2, "swap_counted": True, "tissue_on_air": 0.0, "ncc_after": 0.95,
-            "edge_ncc": 0.9, "overlap": 1.0, "region_shift_mm": 0.0, "rule_score": 0.97}
+            "edge_ncc": 0.9, "overlap": 1.0, "region_shift_mm": 0.0, "rule_score": 0.97, "expected_tre_mm": 0.05}
     worse = {"local_gain": [0.0, 0.002, 0.01, 0.03, 0.2], "swap_tre_mm": [0.05, 0.5, 2.0, 10.0, 200.0],
              "tissue_on_air": [0.0, 0.03, 0.06, 0.2, 1.0], "ncc_after": [1.0, 0.8, 0.5, 0.1, -0.5],
              "edge_ncc": [1.0, 0.8, 0.5, 0.1, -0.5], "overlap": [1.0, 0.8, 0.5, 0.2, 0.0],
-             "region_shift_mm": [0.0, 1.0, 3.0, 9.0, 50.0], "rule_score": [1.0, 0.9, 0.5, 0.1, 0.0]}
+             "region_shift_mm": [0.0, 1.0, 3.0, 9.0, 50.0], "rule_score": [1.0, 0.9, 0.5, 0.1, 0.0],
+             "expected_tre_mm": [0.001, 0.05, 0.3, 20.0, float("inf")]}
     return good, worse
 
 
@@ -114,7 +115,8 @@ def test_the_shipped_calibration_is_monotone_and_in_range():
         assert all(b <= a + 1e-12 for a, b in zip(probs, probs[1:])), (key, probs)
     odd = [{}, {"rule_score": 0.5}, {**good, "swap_tre_mm": float("nan"), "local_gain": float("nan")},
            {**good, "swap_tre_mm": float("inf"), "tissue_on_air": float("inf"), "overlap": float("-inf")},
-           {**good, "swap_counted": False}, {**good, "edge_ncc": None}]
+           {**good, "swap_counted": False}, {**good, "edge_ncc": None}, {**good, "expected_tre_mm": float("nan")},
+           {**good, "expected_tre_mm": None}, {**good, "expected_tre_mm": float("-inf")}]
     for signals in odd:
         assert 0.0 <= cal.probability(signals) <= 1.0
         conf, _ = verdict({"rule_score": 0.5, **signals}, cal, 0.5, 0.35)

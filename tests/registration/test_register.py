@@ -142,10 +142,10 @@ def test_confidence_flags_deliberately_failed_registrations(pair, small_registra
     assert all(b["confidence"] < 0.5 for b in bad), [round(b["local_gain"], 4) for b in bad]
     # swapped-input disagreement alone also flags
     assert confidence_score(0.0, 8.0) < 0.5 and confidence_score(0.0, 0.5) > 0.5
-    # and so does tissue on air alone (TISSUE_ON_AIR_LIMIT 0.06 scores 0.5); not measured (NaN): no effect
-    assert confidence_score(0.0, 0.5, tissue_on_air_share=0.15) < 0.01
+    # and so does tissue on deep air alone (tissue_air.DEEP_LIMIT 0.015 scores 0.5); not measured (NaN): no effect
+    assert confidence_score(0.0, 0.5, tissue_on_air_share=0.04) < 0.01
     assert confidence_score(0.0, 0.5, tissue_on_air_share=0.0) == pytest.approx(confidence_score(0.0, 0.5))
-    assert confidence_score(0.0, 0.5, tissue_on_air_share=0.06) == pytest.approx(0.5, abs=0.02)
+    assert confidence_score(0.0, 0.5, tissue_on_air_share=0.015) == pytest.approx(0.5, abs=0.02)
     assert confidence_score(0.0, 0.5, tissue_on_air_share=float("nan")) == confidence_score(0.0, 0.5)
 
 
@@ -790,6 +790,31 @@ def test_tissue_on_air_separates_right_and_grossly_wrong_poses(pair, small_regis
     assert tissue_on_air(ct, cb, view) == 0.0
     view[:] = 0.0
     assert np.isnan(tissue_on_air(ct, cb, view))  # nothing in view: no signal
+
+
+def test_deep_air_leaves_out_the_band_along_the_cbcts_body_outline():
+    """``tissue_on_air_deep`` (the rule's signal): tissue on a two-voxel band of CBCT air along its body (an outline
+    that moved, a millimetre of error) does not count; tissue on air that reaches deeper than
+    :data:`~monai_rigidreg.registration.tissue_air.DEEP_AIR_MM` does, voxel for voxel where the air's box is all
+    air. On the 2 mm network grid the radius is two voxels; on a 4 mm one, one."""
+    from monai_rigidreg.registration.tissue_air import AIR_HU, TISSUE_HU, deep_air_radius, tissue_on_air
+
+    lo, hi = -1000.0, 2000.0
+    norm = lambda hu: (hu - lo) / (hi - lo)  # noqa: E731
+    assert deep_air_radius((2.0, 2.0, 2.0)) == [2, 2, 2] and deep_air_radius((4.0, 1.0, 2.5)) == [1, 4, 2]
+    ct = torch.full((30, 12, 12), norm(TISSUE_HU + 100))  # tissue everywhere in view
+    cb = torch.full((30, 12, 12), norm(0.0))
+    view = torch.ones(30, 12, 12)
+    radius = deep_air_radius((2.0, 2.0, 2.0))
+    cb[:, :2, :] = norm(AIR_HU - 100)  # a two-voxel band of air along one face: an outline 4 mm off
+    band = tissue_on_air(ct, cb, view)
+    assert band == pytest.approx(2 / 12)
+    assert tissue_on_air(ct, cb, view, air_radius=radius) == 0.0
+    cb[:, :, :] = norm(0.0)
+    cb[:10, :, :] = norm(AIR_HU - 100)  # a block of 10 of 30 slices: the volume's own edge does not erode it
+    deep = tissue_on_air(ct, cb, view, air_radius=radius)
+    assert deep == pytest.approx((10 - 2) / 30)  # all but the two slices next to the CBCT's tissue
+    assert tissue_on_air(ct, cb, view) == pytest.approx(10 / 30)
 
 
 def test_the_last_level_bias_degree_follows_the_match_region(fast_pair, shipped_registrar, monkeypatch):
