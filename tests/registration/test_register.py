@@ -147,6 +147,32 @@ def test_confidence_flags_deliberately_failed_registrations(pair, small_registra
     assert confidence_score(0.0, 0.5, tissue_on_air_share=0.0) == pytest.approx(confidence_score(0.0, 0.5))
     assert confidence_score(0.0, 0.5, tissue_on_air_share=0.015) == pytest.approx(0.5, abs=0.02)
     assert confidence_score(0.0, 0.5, tissue_on_air_share=float("nan")) == confidence_score(0.0, 0.5)
+    # the edge gain counts only where the edge optimum lies beyond one probe step (EDGE_OFFSET_LIMIT)
+    assert confidence_score(0.05, 0.5) < 0.01
+    assert confidence_score(0.05, 0.5, edge_offset_steps=0.6) == pytest.approx(confidence_score(0.0, 0.5))
+    assert confidence_score(0.05, 0.5, edge_offset_steps=1.4) < 0.01
+    assert confidence_score(0.05, 0.5, edge_offset_steps=float("nan")) < 0.01  # not measured: the gain counts
+    assert good["edge_offset"] <= 1.0 and all(b["edge_offset"] > 1.0 for b in bad), [b["edge_offset"] for b in bad]
+
+
+def test_edge_offset_is_the_parabola_vertex_in_probe_steps():
+    """Per parameter the vertex of the parabola through the scores at minus one, zero and plus one step: a score
+    curve ``1 - (x - v)^2`` sampled there gives back ``|v|``; the largest over the six parameters counts; a
+    parameter along which the scores do not curve down has no optimum (infinite)."""
+    from monai_rigidreg.registration.confidence import edge_offset
+
+    def scores(vertices):
+        out = [0.0]  # the estimate's score; each parameter's curve -(x - v)^2 taken relative to it
+        for v in vertices:
+            out += [-((-1.0 - v) ** 2) + v**2, -((1.0 - v) ** 2) + v**2]
+        return out
+
+    assert edge_offset(scores([0.0, 0.3, -0.2, 0.0, 0.7, 0.1])) == pytest.approx(0.7)
+    assert edge_offset(scores([0.0, 0.0, 0.0, -1.6, 0.0, 0.0])) == pytest.approx(1.6)
+    flat = scores([0.0] * 6)
+    flat[5], flat[6] = 0.01, 0.02  # the third parameter: both neighbours better
+    assert edge_offset(flat) == float("inf")
+    assert np.isnan(edge_offset([0.0] * 12 + [float("nan")])) and np.isnan(edge_offset([0.0] * 5))
 
 
 def test_register_command_with_dicom_and_overwrite_rules(pair, tmp_path, monkeypatch, small_registrar):
@@ -841,7 +867,8 @@ def test_the_last_level_bias_degree_follows_the_match_region(fast_pair, shipped_
     assert 0.0 <= sig["tissue_on_air"] < 0.02
     assert sig["rule_score"] == pytest.approx(confidence_score(sig["local_gain"], sig["swap_tre_mm"],
                                                               swap_counted=sig.get("swap_counted", True),
-                                                              tissue_on_air_share=sig["tissue_on_air"]))
+                                                              tissue_on_air_share=sig["tissue_on_air_deep"],
+                                                              edge_offset_steps=sig["edge_offset"]))
     assert whole.details["native_level"]["bias_degree"] == 0 and seen[0] == 0
     assert boxed.details["native_level"]["bias_degree"] == 2 and seen[-1] == 2
     assert _fast_pair_tre(fast_pair, whole) < 2.0 and _fast_pair_tre(fast_pair, boxed) < 2.0
