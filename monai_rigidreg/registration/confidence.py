@@ -82,7 +82,7 @@ EDGE_OFFSET_LIMIT = 1.0
 from the estimate along some parameter, or has no optimum there (:func:`edge_offset`): one step is 2 mm or 2
 degrees, the success criterion's scale. On the 286 cases of bundle 0.5.0's calibration the right results the gain
 flagged had their optimum 0.55-0.85 steps away (four false alarms of the default path: partial overlap, a few
-thousand, or a few dozen, pooled voxels in view), the failures it caught 1.2 steps or more (most with no optimum
+thousand, or a few dozen, pooled voxels in view), the failures it caught 1.17 steps or more (most with no optimum
 along some parameter); ``docs/trust.md``."""
 EDGE_SPACING_MM = 4.0
 """Resolution (mm) at which :meth:`RigidRegistrar.assess` compares edges (finer network grids are pooled to it)."""
