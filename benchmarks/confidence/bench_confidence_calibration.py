@@ -141,8 +141,10 @@ def load_rows(paths: list[Path]) -> list[dict[str, Any]]:
     """The collected rows; a row collected before ``signals.alternative_ncc_gap`` existed gets it from its
     ``swap_check`` (the same two image-match scores, as the registrar now records them) where the twin lay more than
     ``confidence.AMBIGUOUS_TWIN_MM`` away, except the learned network alone's (``paper_regression``), where the verdict
-    does not use it (``calibration.AMBIGUOUS_NCC_GAP``)."""
+    does not use it (``calibration.AMBIGUOUS_NCC_GAP``); one collected before ``signals.last_level_exhausted`` existed
+    gets it from ``native_level.passes``."""
     from monai_rigidreg.registration.confidence import AMBIGUOUS_TWIN_MM
+    from monai_rigidreg.registration.last_level import NATIVE_MAX_PASSES
 
     rows = []
     for path in paths:
@@ -152,6 +154,10 @@ def load_rows(paths: list[Path]) -> list[dict[str, Any]]:
         if (check and signals is not None and "alternative_ncc_gap" not in signals and r["set"] != "paper_regression"
                 and check["swap_tre_mm"] > AMBIGUOUS_TWIN_MM):
             signals["alternative_ncc_gap"] = round(abs(check["estimate_ncc"] - check["swapped_ncc"]), 4)
+        level = r.get("native_level") or {}
+        if signals is not None and "last_pass_mm" in signals and "last_level_exhausted" not in signals:
+            # collected before the signal existed: the last level ran all its passes (last_level.NATIVE_MAX_PASSES)
+            signals["last_level_exhausted"] = int(level.get("passes", 0)) >= NATIVE_MAX_PASSES
     return rows
 
 

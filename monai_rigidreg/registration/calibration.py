@@ -54,7 +54,12 @@ a pass moves it by at most :data:`~monai_rigidreg.registration.last_level.NATIVE
 happens only where its passes ran out (:data:`~monai_rigidreg.registration.last_level.NATIVE_MAX_PASSES`) with the
 estimate still travelling: no image optimum was reached. On the 286 calibration cases re-collected with bundle
 0.5.0's weights it fired on 33 results: 29 failures, one of them (3.9 mm, a CT covering 31 % of the CBCT, last pass
-3.7 mm) flagged by nothing else, and 4 right ones (0.76-0.95 mm), one flagged by nothing else (``docs/trust.md``)."""
+3.7 mm) flagged by nothing else, and 4 right ones (0.76-0.95 mm), one flagged by nothing else (``docs/trust.md``).
+A result whose last level needed all its passes to settle (``details.signals.last_level_exhausted``) is flagged
+``"unconverged"`` too: the estimate travelled more than 0.5 mm in each of the first five passes. On the same cases
+(collected again after 0.5.0 with the new rule's signals) that adds one failure no other signal caught (a partial
+abdomen pair 3.00 mm off) and no false alarm of the default path on ordinary inputs; it flags one more right result
+of the default path without its search (0.64 mm)."""
 UNCALIBRATED_MEANING = ("an uncalibrated score: the weakest of the failure signals, each mapped through a logistic "
                         "that gives 0.5 at its hand-set limit (not a probability)")
 
@@ -203,7 +208,8 @@ def verdict(signals: dict[str, Any], calibration: ConfidenceCalibration | None, 
     calibrated on HU, and swapped inputs give the inverse transform), ``"overlap"`` (below ``overlap_flag_below``),
     ``"unpolished"`` (the learned network alone, ``fine_stage=False``, whose estimate the last level would move by
     more than :data:`POLISH_PROBE_LIMIT_MM`: ``polish_probe_mm``), ``"unconverged"`` (the last level's last pass still
-    moved the estimate by more than :data:`UNCONVERGED_MM`: ``last_pass_mm``), ``"ambiguous"`` (the swapped-input
+    moved the estimate by more than :data:`UNCONVERGED_MM`: ``last_pass_mm``, or it needed all its passes:
+    ``last_level_exhausted``), ``"ambiguous"`` (the swapped-input
     estimate lies more than :data:`~monai_rigidreg.registration.confidence.AMBIGUOUS_TWIN_MM` away, or another start's
     more than :data:`~monai_rigidreg.registration.overlap.AMBIGUOUS_DISTANCE_MM`, and the two match the images within
     :data:`AMBIGUOUS_NCC_GAP`: ``alternative_ncc_gap``; not for the network alone), ``"rule"`` (a signal past its
@@ -226,7 +232,7 @@ def verdict(signals: dict[str, Any], calibration: ConfidenceCalibration | None, 
         reasons.append("unpolished")
     if _finite(signals.get("alternative_ncc_gap"), math.inf) < AMBIGUOUS_NCC_GAP and "polish_probe_mm" not in signals:
         reasons.append("ambiguous")  # (not for the learned network alone: neither estimate is at an image optimum)
-    if _finite(signals.get("last_pass_mm"), 0.0) > UNCONVERGED_MM:
+    if _finite(signals.get("last_pass_mm"), 0.0) > UNCONVERGED_MM or signals.get("last_level_exhausted") is True:
         reasons.append("unconverged")
     if rule < rule_threshold and (calibration is None or calibration.rule_flags):
         reasons.append("rule")

@@ -391,6 +391,7 @@ class ConfidenceStage:
             signals["polish_probe_mm"] = self._polish_probe(state)
         elif "last_pass_mm" in details.get("native_level", {}):  # calibration.UNCONVERGED_MM
             signals["last_pass_mm"] = float(details["native_level"]["last_pass_mm"])
+            signals["last_level_exhausted"] = bool(details["native_level"].get("exhausted", False))
             signals["expected_tre_mm"] = float(details["native_level"].get("expected_tre_mm", float("nan")))
         overlap = self._overlap_report(state, params_to_matrix(state.params, state.run.grid.center()))
         if np.isfinite(overlap):

@@ -254,8 +254,9 @@ class LastLevelStage:
         or ``--match bone``, is among ``weights``), run again from its result until a pass moves it by at most
         :data:`NATIVE_CONVERGED_MM` (``converge=False``: one pass). Returns the refined matrix and
         ``details.native_level``: the level's grid, bias degree, how far it moved the estimate in all (``change_mm``,
-        mean distance over the points of ``grid``, the network grid, mm), ``passes``, ``last_pass_mm`` and the last
-        pass's ``expected_tre_mm`` (:mod:`~monai_rigidreg.registration.precision`)."""
+        mean distance over the points of ``grid``, the network grid, mm), ``passes``, ``last_pass_mm``, ``exhausted``
+        (it ran all :data:`NATIVE_MAX_PASSES`) and the last pass's ``expected_tre_mm``
+        (:mod:`~monai_rigidreg.registration.precision`)."""
         stage = self.network.fine_stage
         degree = self.native_bias_degree_roi if region else self.native_bias_degree
         sigma = stage.highpass_sigma_mm if self.native_highpass_sigma_mm is None else self.native_highpass_sigma_mm
@@ -279,5 +280,6 @@ class LastLevelStage:
         change = moves[0] if len(moves) == 1 else matrix_distance_mm(refined, matrix, points)
         detail = {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size), "bias_degree": degree,
                   "highpass_sigma_mm": float(sigma), "change_mm": round(change, 3),
-                  "passes": len(moves), "last_pass_mm": round(moves[-1], 3), **report}
+                  "passes": len(moves), "last_pass_mm": round(moves[-1], 3),
+                  "exhausted": converge and len(moves) >= NATIVE_MAX_PASSES, **report}
         return refined, detail

@@ -69,6 +69,9 @@ def test_the_verdict_rules_and_the_cap_below_the_flag_threshold():
     conf, reasons = verdict({**ok, "last_pass_mm": UNCONVERGED_MM + 0.5}, cal, 0.5, 0.35)
     assert reasons == ["unconverged"] and conf == pytest.approx(0.79)
     assert verdict({**ok, "last_pass_mm": UNCONVERGED_MM}, cal, 0.5, 0.35)[1] == []
+    # or it settled only on the last pass it was allowed
+    assert verdict({**ok, "last_pass_mm": 0.2, "last_level_exhausted": True}, cal, 0.5, 0.35)[1] == ["unconverged"]
+    assert verdict({**ok, "last_pass_mm": 0.2, "last_level_exhausted": False}, cal, 0.5, 0.35)[1] == []
     with pytest.raises(ValueError, match="unknown features"):
         ConfidenceCalibration("t", "x", ("no_such_feature",), (1.0,), 0.0, 0.5)
 

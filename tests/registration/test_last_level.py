@@ -224,3 +224,24 @@ def test_the_last_level_runs_again_until_a_pass_moves_the_estimate_by_half_a_mil
     # at the truth one pass suffices
     _, stay = registrar._native(ct, cbct, truth, fov, [], grid)
     assert stay["passes"] == 1 and stay["last_pass_mm"] < NATIVE_CONVERGED_MM
+    # each records whether it needed every pass it was allowed (flagged "unconverged", calibration.verdict), and how
+    # precisely the images fix its result (registration.precision): finite, and far below a millimetre at the truth
+    assert detail["exhausted"] == (detail["passes"] == NATIVE_MAX_PASSES) and not stay["exhausted"]
+    assert not one_detail["exhausted"]  # one pass asked for (the learned network alone's probe): never exhausted
+    assert 0.0 < stay["expected_tre_mm"] < 0.5 and stay["weighted_voxels"] > 1000
+
+
+def test_a_last_level_that_needs_every_pass_says_so(monkeypatch):
+    """Allowed two passes from 13 mm away, the last level uses both and records ``exhausted`` (which the verdict flags
+    ``unconverged`` whatever the last pass moved: test_calibration.py)."""
+    from monai_rigidreg.registration import last_level
+    from monai_rigidreg.registration.registrar import RigidRegistrar
+
+    monkeypatch.setattr(last_level, "NATIVE_MAX_PASSES", 2)
+    registrar = RigidRegistrar.from_bundle(device="cpu")
+    iso = np.array([10.0, -20.0, 5.0])
+    ct, cbct, truth = _pair([6.0, -3.0, 4.0, 4.0, -3.0, 5.0], iso)
+    grid = Grid.centered((64, 64, 64), (2.0,) * 3, iso)
+    start = truth @ params_to_matrix([8.0, -6.0, 5.0, 6.0, -4.0, 5.0], iso)
+    _, detail = registrar._native(ct, cbct, start, cylindrical_fov_mask(cbct), [], grid)
+    assert detail["passes"] == 2 and detail["exhausted"] is True
