@@ -255,7 +255,7 @@ class LastLevelStage:
         :data:`NATIVE_CONVERGED_MM` (``converge=False``: one pass). Returns the refined matrix and
         ``details.native_level``: the level's grid, bias degree, how far it moved the estimate in all (``change_mm``,
         mean distance over the points of ``grid``, the network grid, mm), ``passes``, ``last_pass_mm``, ``exhausted``
-        (it ran all :data:`NATIVE_MAX_PASSES`) and the last pass's ``expected_tre_mm``
+        (it ran all :data:`NATIVE_MAX_PASSES`, where more than one is allowed) and the last pass's ``expected_tre_mm``
         (:mod:`~monai_rigidreg.registration.precision`)."""
         stage = self.network.fine_stage
         degree = self.native_bias_degree_roi if region else self.native_bias_degree
@@ -281,5 +281,5 @@ class LastLevelStage:
         detail = {"spacing_mm": float(native_grid.spacing[0]), "size": list(native_grid.size), "bias_degree": degree,
                   "highpass_sigma_mm": float(sigma), "change_mm": round(change, 3),
                   "passes": len(moves), "last_pass_mm": round(moves[-1], 3),
-                  "exhausted": converge and len(moves) >= NATIVE_MAX_PASSES, **report}
+                  "exhausted": converge and 1 < NATIVE_MAX_PASSES <= len(moves), **report}
         return refined, detail
