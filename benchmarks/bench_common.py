@@ -11,6 +11,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -96,6 +97,20 @@ def set_threads(threads: int) -> None:
     torch.set_num_threads(threads)
     sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(threads)
 
+
+
+def start_registrar_run(ap: argparse.ArgumentParser, module: str) -> tuple[Any, Tee, LoadMonitor, float, Any]:
+    """The common start of a benchmark that times or scores the shipped bundle's registrar on the CPU: ``ap`` (with
+    its own ``--threads``) gains ``--results``; returns the parsed arguments, the output, the load monitor, the start
+    time (:func:`start_run`) and the registrar, loaded after :func:`set_threads`."""
+    ap.add_argument("--results", type=Path, default=None, help="write the printed report here")
+    args = ap.parse_args()
+    out = Tee()
+    monitor, t0 = start_run(out, module, args.threads, "cpu", "the shipped bundle")
+    set_threads(args.threads)
+    import monai_rigidreg
+
+    return args, out, monitor, t0, monai_rigidreg.RigidRegistrar.from_bundle(device="cpu")
 
 
 def checked_peers(methods: list[str], out: Tee) -> list[str]:

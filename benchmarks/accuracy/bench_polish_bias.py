@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from benchmarks.bench_common import Tee, end_run, script_parser, start_run
+from benchmarks.bench_common import end_run, script_parser, start_registrar_run
 
 VARIANTS = {"default": {}, "alone": {}, "no-last-level": {"native_level": False}, "bias-2": {"native_bias_degree": 2}}
 
@@ -23,20 +23,13 @@ def main() -> None:
                     help="bench_real_ct's --output-dir (<dir>/<ct>/dataset.json)")
     ap.add_argument("--ct", nargs="+", required=True)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--results", type=Path, default=None)
-    args = ap.parse_args()
-    out = Tee()
-    monitor, t0 = start_run(out, __spec__.name if __spec__ else "bench_polish_bias", args.threads, "cpu",
-                            "the shipped bundle")
+    args, out, monitor, t0, registrar = start_registrar_run(ap, __spec__.name if __spec__ else "bench_polish_bias")
     import numpy as np
-    import torch
 
     import monai_rigidreg
     from monai_rigidreg.core.geometry import invert_matrix, matrix_to_params, params_to_matrix
     from monai_rigidreg.evaluation.evaluate import iter_cases, load_datalist
 
-    torch.set_num_threads(args.threads)
-    registrar = monai_rigidreg.RigidRegistrar.from_bundle(device="cpu")
     base = {k: getattr(registrar, k) for k in ("native_level", "native_bias_degree")}
     out("| CT | variant | n | mean TRE (mm) | mean residual tx ty tz (mm), rx ry rz (deg) | sd of the residual |")
     out("|---|---|---|---|---|---|")

@@ -14,7 +14,7 @@ import statistics
 import time
 from pathlib import Path
 
-from benchmarks.bench_common import Tee, end_run, script_parser, start_run
+from benchmarks.bench_common import end_run, script_parser, start_registrar_run
 
 
 def main() -> None:
@@ -22,22 +22,14 @@ def main() -> None:
     ap.add_argument("--pairs", type=Path, default=Path("bench_out/speed"), help="bench_speed's --output-dir")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--results", type=Path, default=None)
-    args = ap.parse_args()
-    out = Tee()
-    monitor, t0 = start_run(out, __spec__.name if __spec__ else "bench_precision_cost", args.threads, "cpu",
-                            "the shipped bundle")
+    args, out, monitor, t0, registrar = start_registrar_run(ap, __spec__.name if __spec__ else "bench_precision_cost")
     import numpy as np
     import SimpleITK as sitk
-    import torch
 
     import monai_rigidreg
     from benchmarks.speed.bench_speed import load_case
     from monai_rigidreg.registration import last_level
 
-    torch.set_num_threads(args.threads)
-    sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(args.threads)
-    registrar = monai_rigidreg.RigidRegistrar.from_bundle(device="cpu")
     cases = sorted(p for p in args.pairs.iterdir() if (p / "case.json").is_file())
     if not cases:
         raise SystemExit(f"no pairs in {args.pairs}: make them with python -m benchmarks.speed.bench_speed")
