@@ -133,7 +133,7 @@ def send_files(files: Sequence[str | Path], port: int, called_ae: str, calling_a
     from pynetdicom import AE
 
     ae = AE(ae_title=calling_ae)
-    ae.acse_timeout = ae.dimse_timeout = ae.network_timeout = 30.0
+    ae.acse_timeout = ae.dimse_timeout = ae.network_timeout = 60.0  # the service's own timeouts
     sop_classes = {str(dcmread(str(f), stop_before_pixels=True).SOPClassUID) for f in files[:1]} or {CT_IMAGE_STORAGE}
     for sop in sop_classes:
         ae.add_requested_context(sop, ["1.2.840.10008.1.2.1", "1.2.840.10008.1.2"])
@@ -145,7 +145,8 @@ def send_files(files: Sequence[str | Path], port: int, called_ae: str, calling_a
         if abort_after is not None and k >= abort_after:
             assoc.abort()
             return SendResult(True, False, statuses)
-        status = assoc.send_c_store(dcmread(str(f)))
+        # each request its own Message ID (PS3.7 9.3.1.1), so that a late response cannot pass for the next one's
+        status = assoc.send_c_store(dcmread(str(f)), msg_id=k + 1)
         statuses.append(int(status.Status) if status is not None and "Status" in status else None)
     assoc.release()
     return SendResult(True, False, statuses)
