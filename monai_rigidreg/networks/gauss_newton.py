@@ -29,8 +29,9 @@ from monai_rigidreg.core.geometry import (
     matrix_to_params_torch,
     params_to_matrix_torch,
 )
-from monai_rigidreg.core.image_ops import erode, gradient_magnitude, local_mean, pyramid
+from monai_rigidreg.core.image_ops import erode, pyramid
 from monai_rigidreg.core.warp import normalized_points, sample_normalized, warp_volume
+from monai_rigidreg.networks.alignment_features import alignment_features
 from monai_rigidreg.networks.gauss_newton_terms import (
     fixed_jacobian,
     parameter_flow,
@@ -298,44 +299,6 @@ def _with_bias_terms(h: torch.Tensor, g: torch.Tensor, wj: torch.Tensor, w: torc
     return big_h, big_g
 
 
-def alignment_features(
-    volume: torch.Tensor,
-    spacing: Sequence[float],
-    support_threshold: float = 1e-3,
-    highpass_sigma_mm: float = 16.0,
-    highpass_weight: float = 3.0,
-    gradient_weight: float = 0.0,
-) -> torch.Tensor:
-    """Contrast-robust feature maps for the Gauss-Newton stage: ``[N, C, x, y, z]`` -> ``[N, C * k, x, y, z]``.
-
-    The channels are the input intensity, ``highpass_weight`` times its local contrast (the intensity minus its
-    Gaussian mean over the voxels that hold data, a normalized convolution, so the CBCT field-of-view edge and the
-    air around the body do not leak in) and, optionally, ``gradient_weight`` times its gradient magnitude (per voxel
-    step; off by default: it did not add accuracy on top of the local contrast); a weight of 0 drops that channel.
-
-    Why: aligning raw intensities pulls the estimate towards matching the CBCT's low-frequency errors (scatter
-    cupping, beam hardening) with the CT. ``benchmarks/ablation/bench_alignment_features.py`` measures the choice on a
-    paper-protocol set (64^3 grid at 2 mm): on the bundle's validation cases the mean TRE drops from about 2.6 mm
-    with intensities alone to about 0.6 mm with the local-contrast channel at the defaults (0.4 mm with the
-    network's 8 mm support erosion).
-
-    Args:
-        volume: ``[N, C, x, y, z]`` normalized volumes (0 = no data / air).
-        spacing: grid spacing in mm (converts ``highpass_sigma_mm`` to voxels).
-        support_threshold: intensity above which a voxel holds data.
-        highpass_sigma_mm: Gaussian sigma of the local mean (mm).
-        highpass_weight, gradient_weight: channel weights.
-    """
-    out = [volume]
-    if highpass_weight != 0:
-        mask = (volume > support_threshold).to(volume.dtype)
-        mean = local_mean(volume, mask, [float(highpass_sigma_mm) / float(s) for s in spacing])
-        out.append(highpass_weight * (volume - mean) * mask)
-    if gradient_weight != 0:
-        out.append(gradient_weight * gradient_magnitude(volume, eps=1e-6))
-    return torch.cat(out, 1)
-
-
 class GaussNewtonStage(nn.Module):
     """The fine stage: coarse-to-fine Gauss-Newton alignment of contrast-robust features, from two starts.
 
@@ -360,8 +323,9 @@ class GaussNewtonStage(nn.Module):
             units, so this must be the spacing the volumes are on).
         iterations: Gauss-Newton steps per pyramid level (empty or all zero: the start is returned).
         levels: pooling factor of each level, coarse to fine (same length as ``iterations``).
-        highpass_sigma_mm, highpass_weight, gradient_weight: the feature maps, see :func:`alignment_features`
-            (weights 0: align intensities alone).
+        highpass_sigma_mm, highpass_weight, gradient_weight, contrast_norm_sigma_mm, intensity_weight: the feature
+            maps, see :func:`alignment_features` (highpass and gradient weights 0: align intensities alone). The last
+            level (:mod:`~monai_rigidreg.registration.last_level`) uses the same settings.
         support_erosion_mm: erosion of the moving support before it weights the residuals (mm, at least a voxel).
             More than a voxel: near the CBCT field-of-view edge the local contrast of the CT (which has data
             beyond it) and of the CBCT differ (``bench_alignment_features.py``: 8 mm takes the validation TRE
@@ -402,8 +366,16 @@ class GaussNewtonStage(nn.Module):
         support_threshold: float = 1e-3,
         tolerance: Sequence[float] | None = None,
         secant: bool = False,
+        contrast_norm_sigma_mm: float | None = None,
+        intensity_weight: float = 1.0,
     ) -> None:
         super().__init__()
+        if contrast_norm_sigma_mm is not None and not float(contrast_norm_sigma_mm) > 0:
+            raise ValueError(f"contrast_norm_sigma_mm must be > 0 mm (or None), got {contrast_norm_sigma_mm}")
+        if not float(intensity_weight) >= 0:
+            raise ValueError(f"intensity_weight must be >= 0, got {intensity_weight}")
+        self.contrast_norm_sigma_mm = None if contrast_norm_sigma_mm is None else float(contrast_norm_sigma_mm)
+        self.intensity_weight = float(intensity_weight)
         self.secant = bool(secant)
         if tolerance is not None and (len(tolerance) != 2 or min(float(v) for v in tolerance) <= 0):
             raise ValueError(f"tolerance must be (mm, degrees) > 0, got {tolerance}")
@@ -432,7 +404,8 @@ class GaussNewtonStage(nn.Module):
     def features(self, volumes: torch.Tensor) -> torch.Tensor:
         """The maps the stage aligns, ``[N, C, x, y, z]`` -> ``[N, C * k, x, y, z]`` (:func:`alignment_features`)."""
         return alignment_features(volumes, self.grid_spacing, self.support_threshold, self.highpass_sigma_mm,
-                                  self.highpass_weight, self.gradient_weight)
+                                  self.highpass_weight, self.gradient_weight, self.contrast_norm_sigma_mm,
+                                  self.intensity_weight)
 
     def forward(self, moving: torch.Tensor, fixed: torch.Tensor, start: torch.Tensor,
                 fixed_weight: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -110,6 +110,8 @@ def refine_native(
     tolerance: tuple[float, float] | None = (0.01, 0.01),
     secant: bool = False,
     report: dict[str, Any] | None = None,
+    contrast_norm_sigma_mm: float | None = None,
+    intensity_weight: float = 1.0,
 ) -> tuple[np.ndarray, Grid]:
     """Refine a fixed -> moving 4x4 ``matrix`` (LPS mm) at native resolution over the CBCT field of view.
 
@@ -124,7 +126,8 @@ def refine_native(
             noise of a CBCT's air is clipped on one side only, its mean rises above the CT's, and the intensity
             channel pulls the body surface: measured in ``tests/test_precision.py``'s pair (25 HU noise), a 0.42 mm
             bias with -1000, 0.004 mm with -1200.
-        highpass_sigma_mm, highpass_weight: the local-contrast feature (the fine stage's settings).
+        highpass_sigma_mm, highpass_weight, contrast_norm_sigma_mm, intensity_weight: the feature maps (the fine
+            stage's settings; :func:`~monai_rigidreg.networks.gauss_newton.alignment_features`).
         support_erosion_mm: erosion of the CBCT field of view.
         bias_degree: the smooth intensity bias estimated with the pose (-1: none).
         min_spacing_mm, max_extent_mm, max_voxels: the grid (:func:`native_grid`).
@@ -147,7 +150,8 @@ def refine_native(
     support = erode(fov, radius)
     w = weight_on_grid(weights, grid)
     w = None if w is None else w[None].to(device)
-    feats = alignment_features(torch.cat([moving_t, fixed_t]), grid.spacing, 1e-3, highpass_sigma_mm, highpass_weight)
+    feats = alignment_features(torch.cat([moving_t, fixed_t]), grid.spacing, 1e-3, highpass_sigma_mm, highpass_weight,
+                               contrast_norm_sigma_mm=contrast_norm_sigma_mm, intensity_weight=intensity_weight)
     candidates, reach = support_reach(fov, radius, grid.spacing, w)
     if float(candidates.float().mean()) > CANDIDATE_SHARE_MAX:
         candidates = None  # nearly the whole grid: the dense steps are cheaper
@@ -268,7 +272,9 @@ class LastLevelStage:
                 fixed_img, moving_img, start, fov_img, weights, highpass_sigma_mm=sigma,
                 highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
                 bias_degree=degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
-                secant=getattr(stage, "secant", False), max_voxels=self.native_max_voxels, report=report)
+                secant=getattr(stage, "secant", False), max_voxels=self.native_max_voxels, report=report,
+                contrast_norm_sigma_mm=getattr(stage, "contrast_norm_sigma_mm", None),
+                intensity_weight=getattr(stage, "intensity_weight", 1.0))
 
         refined, native_grid = one_pass(matrix)
         points = grid_points(grid, 8)
