@@ -125,6 +125,19 @@ class SendResult:
         return self.established and bool(self.statuses) and all(s == 0 for s in self.statuses)
 
 
+def _wait_for_reactor(assoc: Any, seconds: float = 10.0) -> None:
+    """Wait until the association's reactor has resumed from the pause of the last request.
+
+    pynetdicom (2.x-3.0) pauses the reactor thread for each request and takes ``_is_paused`` for proof that it is
+    paused. A reactor that was released after the previous response but has not run since still shows ``True``: the
+    next request then goes out unpaused, the reactor takes its response for an unexpected message and the request
+    times out ("Received unexpected C-STORE service message"; seen in CI on a loaded machine). Between requests of
+    one association, waiting for the flag to fall closes that window."""
+    deadline = time.monotonic() + seconds
+    while getattr(assoc, "_is_paused", False) and assoc.is_established and time.monotonic() < deadline:
+        time.sleep(0.001)
+
+
 def send_files(files: Sequence[str | Path], port: int, called_ae: str, calling_ae: str, host: str = "127.0.0.1",
                abort_after: int | None = None) -> SendResult:
     """Send ``files`` in one association with pynetdicom, as a console does. ``abort_after``: abort the association
@@ -145,9 +158,9 @@ def send_files(files: Sequence[str | Path], port: int, called_ae: str, calling_a
         if abort_after is not None and k >= abort_after:
             assoc.abort()
             return SendResult(True, False, statuses)
-        # each request its own Message ID (PS3.7 9.3.1.1), so that a late response cannot pass for the next one's
-        status = assoc.send_c_store(dcmread(str(f)), msg_id=k + 1)
+        status = assoc.send_c_store(dcmread(str(f)), msg_id=k + 1)  # each request its own Message ID
         statuses.append(int(status.Status) if status is not None and "Status" in status else None)
+        _wait_for_reactor(assoc)
     assoc.release()
     return SendResult(True, False, statuses)
 
