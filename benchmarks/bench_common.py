@@ -197,6 +197,20 @@ def end_run(out: Tee, monitor: LoadMonitor, t_start: float, results: Path | None
         print(f"written {results}")
 
 
+def pose_error(truth: object, truth_center: object, estimate: object, estimate_center: object,
+               points: np.ndarray) -> tuple[np.ndarray, float]:
+    """The error of an estimate against the truth (each six parameters, mm / degrees, about its centre): the residual
+    motion ``truth^-1 estimate`` as six parameters about the truth's centre (its mean over cases is a bias), and the
+    mean distance (mm) between the two transforms' images of ``points`` (``[n, 3]`` LPS mm, the TRE)."""
+    from monai_rigidreg.core.geometry import invert_matrix, matrix_to_params, params_to_matrix
+
+    t = params_to_matrix(truth, truth_center)
+    e = params_to_matrix(estimate, estimate_center)
+    moved = np.c_[points, np.ones(len(points))]
+    tre = float(np.linalg.norm((moved @ (e - t).T)[:, :3], axis=1).mean())
+    return matrix_to_params(invert_matrix(t) @ e, truth_center), tre
+
+
 AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
 """The six parameters' names (mm, degrees), as ``monai_rigidreg.PARAM_NAMES``."""
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.accuracy.bench_real_ct import data_name
-from benchmarks.bench_common import end_run, script_parser, start_registrar_run
+from benchmarks.bench_common import end_run, pose_error, script_parser, start_registrar_run
 
 
 def main() -> None:
@@ -34,7 +34,6 @@ def main() -> None:
     import torch
 
     import monai_rigidreg
-    from monai_rigidreg.core.geometry import invert_matrix, matrix_to_params, params_to_matrix
     from monai_rigidreg.evaluation.evaluate import iter_cases, load_datalist
     from monai_rigidreg.simulation.config import SimulationConfig
     from monai_rigidreg.simulation.physics import CBCTPhysics
@@ -55,7 +54,7 @@ def main() -> None:
     radius = _detector_radius(cfg, grid, mu)
     first = next(iter_cases(load_datalist(d / "dataset.json")[0]))
     fixed = first.fixed
-    points = np.c_[first.points, np.ones(len(first.points))]  # the TRE's body points (bench_real_ct's)
+    points = first.points  # the TRE's body points (bench_real_ct's)
     p = cfg.cbct_physics
     variants = {
         "noise only": CBCTPhysics(photons=p.photons, electronic_noise=p.electronic_noise, scatter_to_primary=0.0,
@@ -83,13 +82,12 @@ def main() -> None:
                 save_fov_mask(fov, cfg.cbct_grid, Path(tmp) / "fov.nii.gz")
                 moving = sitk.ReadImage(str(Path(tmp) / "cbct.nii.gz"), sitk.sitkFloat32)
                 moving_fov = sitk.ReadImage(str(Path(tmp) / "fov.nii.gz"))
-                truth = params_to_matrix(it["params"], it["center"])
                 for fine in (False, True):
                     res = monai_rigidreg.register(fixed, moving, model=registrar, moving_fov=moving_fov,
                                                   resample_moving=False, fine_stage=fine)
-                    estimate = params_to_matrix(res.params, res.center)
-                    residuals[fine].append(matrix_to_params(invert_matrix(truth) @ estimate, it["center"]))
-                    tres[fine].append(float(np.linalg.norm(((estimate - truth) @ points.T)[:3], axis=0).mean()))
+                    residual, tre = pose_error(it["params"], it["center"], res.params, res.center, points)
+                    residuals[fine].append(residual)
+                    tres[fine].append(tre)
             for fine in (False, True):
                 r = np.asarray(residuals[fine])
                 out(f"| {name} | {'default' if fine else 'alone'} | {len(r)} | {np.mean(tres[fine]):.2f} | "

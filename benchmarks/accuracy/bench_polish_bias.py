@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from benchmarks.bench_common import end_run, script_parser, start_registrar_run
+from benchmarks.bench_common import end_run, pose_error, script_parser, start_registrar_run
 
 VARIANTS = {"default": {}, "alone": {}, "no-last-level": {"native_level": False}, "bias-2": {"native_bias_degree": 2},
             "gain-norm": {"stage.contrast_norm_sigma_mm": 12.0},
@@ -35,7 +35,6 @@ def main() -> None:
     import numpy as np
 
     import monai_rigidreg
-    from monai_rigidreg.core.geometry import invert_matrix, matrix_to_params, params_to_matrix
     from monai_rigidreg.evaluation.evaluate import iter_cases, load_datalist
 
     stage = registrar.network.fine_stage
@@ -59,11 +58,9 @@ def main() -> None:
             for case in cases:
                 res = monai_rigidreg.register(case.fixed, case.moving, model=registrar, moving_fov=case.fov,
                                               resample_moving=False, fine_stage=name != "alone")
-                truth = params_to_matrix(case.truth, case.center)
-                estimate = params_to_matrix(res.params, res.center)
-                residuals.append(matrix_to_params(invert_matrix(truth) @ estimate, case.center))
-                moved = np.c_[case.points, np.ones(len(case.points))]
-                tres.append(float(np.linalg.norm((moved @ estimate.T - moved @ truth.T)[:, :3], axis=1).mean()))
+                residual, tre = pose_error(case.truth, case.center, res.params, res.center, case.points)
+                residuals.append(residual)
+                tres.append(tre)
             r = np.asarray(residuals)
             out(f"| {ct} | {name} | {len(r)} | {np.mean(tres):.2f} | {' '.join(f'{v:+.2f}' for v in r.mean(0))} | "
                 f"{' '.join(f'{v:.2f}' for v in r.std(0))} |")

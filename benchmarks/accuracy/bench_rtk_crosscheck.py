@@ -45,10 +45,10 @@ def make_rtk_set(data_dir: Path, num_cases: int, ideal: bool) -> tuple[Path, Pat
 
     from benchmarks.simulation.rtk_cbct import rtk_cbct
     from monai_rigidreg.simulation.physics import CBCTPhysics
-    from monai_rigidreg.simulation.scanner import ConeBeamGeometry
     from monai_rigidreg.simulation.volumes import (
         _detector_radius,
         _object_volume,
+        fitted_cone_geometry,
         frame_offset,
         save_fov_mask,
         save_volume_hu,
@@ -64,7 +64,7 @@ def make_rtk_set(data_dir: Path, num_cases: int, ideal: bool) -> tuple[Path, Pat
     sets = {"rtk": data_dir.with_name(data_dir.name + "_rtk" + suffix)}
     if ideal:
         sets["package"] = data_dir.with_name(data_dir.name + "_ideal")
-    physics = cfg.cbct_physics if isinstance(cfg.cbct_physics, CBCTPhysics) else CBCTPhysics(**cfg.cbct_physics)
+    physics = cfg.cbct_physics
     made = {name: 0 for name in sets}
     seconds = {name: 0.0 for name in sets}
     obj = None
@@ -73,16 +73,15 @@ def make_rtk_set(data_dir: Path, num_cases: int, ideal: bool) -> tuple[Path, Pat
             target = d / it["moving"]
             if target.is_file():
                 continue
-            if obj is None:
+            if obj is None:  # the object and its detector, once (only where a CBCT is missing)
                 grid = cfg.object_grid()
                 mu = _object_volume(cfg, 0, grid, torch.device("cpu"))
-                obj = (grid, mu, _detector_radius(cfg, grid, mu))
-            grid, mu, radius = obj
+                radius = _detector_radius(cfg, grid, mu)
+                obj = (grid, mu, radius,
+                       fitted_cone_geometry(grid, cfg.cbct_grid, radius, cfg.cbct_views, cfg.sod, cfg.sdd))
+            grid, mu, radius, geom = obj
             seed = stream_seed(cfg.seed, 1, int(it["case_id"][4:]))
             t = time.perf_counter()
-            half_h = 0.5 * cfg.cbct_grid.size[2] * cfg.cbct_grid.spacing[2] + cfg.cbct_grid.spacing[2]
-            geom = ConeBeamGeometry(sod=cfg.sod, sdd=cfg.sdd, num_views=cfg.cbct_views).fitted(
-                radius, half_h, min(grid.spacing))
             if name == "rtk":
                 rec, fov = rtk_cbct(mu, grid, cfg.cbct_grid, it["params"], geom, physics, degrade=not ideal, seed=seed)
             else:

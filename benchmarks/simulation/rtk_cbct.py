@@ -3,10 +3,11 @@ an independent reconstruction of the same moved object, on the same grid, for cr
 simulator gives (``benchmarks/accuracy/bench_rtk_crosscheck.py``).
 
 What is shared with the package's CBCT of the case: the object (the CT resampled onto the simulation's object grid by
-:func:`monai_rigidreg.simulation.make_phantom`), the motion applied to it (trilinear, as the package does), the
-geometry (SOD, SDD, views over 360 degrees, the detector's size and pitch fitted to the object) and, with ``physics``,
-the package's degradations of the line integrals (noise, scatter, beam hardening; pixel-wise or symmetric, so RTK's
-detector orientation does not matter to them). What is RTK's: the forward projection (Joseph's method) and the
+:func:`monai_rigidreg.simulation.make_phantom`), the motion applied to it (the package's
+:func:`~monai_rigidreg.simulation.volumes.moved_object`), the geometry (SOD, SDD, views over 360 degrees, the
+detector's size and pitch fitted to the object) and, with ``physics``, the package's degradations of the line
+integrals (noise, scatter, beam hardening; pixel-wise or symmetric, so RTK's detector orientation does not matter to
+them). What is RTK's: the forward projection (Joseph's method) and the
 reconstruction (FDK, ramp filter without apodisation).
 
 Frames: the package's scanner turns about the LPS ``z`` axis, RTK's about its ``y`` axis. The volume is handed to RTK
@@ -101,22 +102,14 @@ def rtk_cbct(
     import itk
     from itk import RTK as rtk
 
-    from monai_rigidreg.core.geometry import params_to_matrix
     from monai_rigidreg.simulation.physics import CBCTPhysics, apply_cbct_physics, fov_mask
+    from monai_rigidreg.simulation.volumes import moved_object
 
     physics = CBCTPhysics() if physics is None else physics
-    from monai_rigidreg.core.warp import warp_volume
-
     for g in (object_grid, cbct_grid):
         if not np.allclose(g.center(), 0.0, atol=1e-6):
             raise ValueError(f"the grids must be centred on the rotation axis (the origin), got centre {g.center()}")
-    m = params_to_matrix(params, (0.0, 0.0, 0.0))
-    obj = mu_object.to(torch.float32)[None, None].cpu()
-    if np.allclose(m, np.eye(4)):
-        moved = obj[0, 0]
-    else:
-        inv = torch.as_tensor(np.linalg.inv(m), dtype=torch.float64)[None]
-        moved = warp_volume(obj, inv, object_grid, object_grid, "bilinear", padding_mode)[0, 0]
+    moved = moved_object(mu_object, object_grid, params, (0.0, 0.0, 0.0), padding_mode, "cpu")
     vol = _to_rtk(moved.numpy(), object_grid.origin, object_grid.spacing)
 
     nu, nv = geometry.detector_shape

@@ -39,8 +39,8 @@ from monai_rigidreg.simulation.projector import cone_forward, fan_forward, grid_
 from monai_rigidreg.simulation.reconstruction import fbp_fan, fdk
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry, FanBeamGeometry
 
-__all__ = ["simulate_simct", "simulate_cbct", "save_volume_hu", "save_fov_mask", "write_simct", "simulate_case",
-           "stream_seed", "frame_offset"]
+__all__ = ["simulate_simct", "simulate_cbct", "moved_object", "fitted_cone_geometry", "save_volume_hu",
+           "save_fov_mask", "write_simct", "simulate_case", "stream_seed", "frame_offset"]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -96,6 +96,32 @@ def _support_radius(mu: torch.Tensor, grid: Grid, xy_only: bool = False, thresho
     return float(math.sqrt(r_xy**2 + float((zs[occ.any(0).any(0)] ** 2).max())))
 
 
+def moved_object(
+    mu_object: torch.Tensor,
+    object_grid: Grid,
+    params: Any,
+    center: Any = (0.0, 0.0, 0.0),
+    padding_mode: str = "zeros",
+    device: str | torch.device | None = "cpu",
+) -> torch.Tensor:
+    """``mu_object`` moved by the rigid motion ``M = params`` about ``center``: ``obj(M^-1(y))`` on ``object_grid``
+    (trilinear; ``[nx, ny, nz]`` float32 on ``device``), the object a CBCT of the motion sees."""
+    m = params_to_matrix(params, center)
+    obj = mu_object.to(device=device, dtype=torch.float32)[None, None]
+    if np.allclose(m, np.eye(4)):
+        return obj[0, 0]
+    inv = torch.as_tensor(np.linalg.inv(m), dtype=torch.float64, device=obj.device)[None]
+    return warp_volume(obj, inv, object_grid, object_grid, "bilinear", padding_mode)[0, 0]
+
+
+def fitted_cone_geometry(object_grid: Grid, cbct_grid: Grid, radius_mm: float, views: int = 360, sod: float = 800.0,
+                         sdd: float = 1200.0) -> ConeBeamGeometry:
+    """The cone-beam geometry of :func:`simulate_cbct`: its detector fitted to cover ``radius_mm`` about the axis and
+    the CBCT grid's height (plus a slice), at the object grid's finest spacing back-projected to the isocentre."""
+    half_h = 0.5 * cbct_grid.size[2] * cbct_grid.spacing[2] + cbct_grid.spacing[2]
+    return ConeBeamGeometry(sod=sod, sdd=sdd, num_views=views).fitted(radius_mm, half_h, min(object_grid.spacing))
+
+
 def simulate_cbct(
     mu_object: torch.Tensor,
     object_grid: Grid,
@@ -141,20 +167,13 @@ def simulate_cbct(
     """
     dev = resolve_device(device)
     physics = CBCTPhysics() if physics is None else physics
-    m = params_to_matrix(params, center)
-    inv = torch.as_tensor(np.linalg.inv(m), dtype=torch.float64, device=dev)[None]
-    obj = mu_object.to(device=dev, dtype=torch.float32)[None, None]
-    if np.allclose(m, np.eye(4)):
-        moved = obj[0, 0]
-    else:
-        moved = warp_volume(obj, inv, object_grid, object_grid, "bilinear", padding_mode)[0, 0]
+    moved = moved_object(mu_object, object_grid, params, center, padding_mode, dev)
     radius = detector_radius_mm
     if radius is None:
         radius = _support_radius(moved, object_grid, xy_only=True) + max(object_grid.spacing)
-    half_h = 0.5 * cbct_grid.size[2] * cbct_grid.spacing[2] + cbct_grid.spacing[2]
-    geom = ConeBeamGeometry(sod=sod, sdd=sdd, num_views=views).fitted(radius, half_h, min(object_grid.spacing))
+    geom = fitted_cone_geometry(object_grid, cbct_grid, radius, views, sod, sdd)
     proj = cone_forward(moved, object_grid, geom, dev)
-    del moved, obj
+    del moved
     gen = torch.Generator(device=dev).manual_seed(int(seed))
     proj = apply_cbct_physics(proj, geom, physics, gen)
     fov = fov_mask(cbct_grid, geom, physics, dev)
