@@ -65,6 +65,21 @@ def ct_name(path: Path) -> str:
     return name
 
 
+def is_training_ct(name: str) -> bool:
+    """Whether the real CT of this file stem (``thorax_4dct_phase00_itkelastix``, also with a data folder's suffix
+    such as ``_multi30``) is one the shipped network was trained on
+    (:data:`~monai_rigidreg.io.shared_data.TRAINING_CTS`): its cases must not be reported as held out."""
+    from monai_rigidreg.io.shared_data import TRAINING_CTS
+
+    return any(name == t or name.startswith(f"{t}_") for t in TRAINING_CTS)
+
+
+def training_mark(name: str) -> str:
+    """The heading mark of a CT's section: held out of training, or a training CT."""
+    return (" -- TRAINING CT (used to train the shipped network; not held out)" if is_training_ct(name)
+            else " (held out of training)")
+
+
 def find_cts(requested: list[str] | None, out: Tee, defaults: tuple[str, ...]) -> list[Path]:
     """The CTs to use (paths, or names of files in the data folder); absent ones are skipped with the reason."""
     from monai_rigidreg.io.shared_data import shared_data_dir

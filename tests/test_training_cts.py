@@ -24,3 +24,14 @@ def test_training_ct_paths_keeps_the_order_and_skips_what_is_missing(tmp_path):
         (tmp_path / f"{name}.nii.gz").write_bytes(b"")
     assert training_ct_paths(tmp_path) == [tmp_path / f"{TRAINING_CTS[0]}.nii.gz",
                                            tmp_path / f"{TRAINING_CTS[2]}.nii.gz"]
+
+
+def test_benchmarks_label_every_training_ct_as_one():
+    # the accuracy benchmarks head each CT's table "held out of training" or "TRAINING CT" from the package's list
+    # (a stale copy once labelled the TCIA CTs held out); data-folder suffixes keep the label
+    from benchmarks.bench_common import is_training_ct, training_mark
+
+    for name in TRAINING_CTS:
+        assert is_training_ct(name) and is_training_ct(f"{name}_rtk_ideal") and "TRAINING CT" in training_mark(name)
+    for name in (*HELD_OUT_CTS, "my_own_ct", "head_tigre_ct_multi30"):
+        assert not is_training_ct(name) and training_mark(name) == " (held out of training)"

@@ -90,27 +90,27 @@ from benchmarks.bench_common import (
     ct_name,
     end_run,
     find_cts,
+    is_training_ct,
     script_parser,
     set_threads,
     signed,
     start_run,
+    training_mark,
 )
 
 REPO = Path(__file__).resolve().parents[2]
 
 HELD_OUT_CTS = ("thorax_4dct_phase00_itkelastix.nii.gz", "head_tigre_ct.nii.gz")
-TRAINING_CTS = ("abdomen_pelvis_totalsegmentator_example_ct.nii.gz",)
-DEFAULT_CTS = HELD_OUT_CTS + TRAINING_CTS
+REFERENCE_TRAINING_CTS = ("abdomen_pelvis_totalsegmentator_example_ct.nii.gz",)
+"""A training CT run by default beside the held-out ones, for reference (every training CT is labelled as one:
+:func:`~benchmarks.bench_common.is_training_ct`)."""
+DEFAULT_CTS = HELD_OUT_CTS + REFERENCE_TRAINING_CTS
 METHODS = ("network", "network-thorough", "network-regression", "elastix", "sitk", "elastix-roi", "ants", "greedy")
 DEFAULT_METHODS = ("network", "elastix", "sitk")
 GROUPS = ("small", "large", "deformed")
 SUCCESS_MM = 2.0
 REGRESSION_MM = 5.0  # the learned network alone's bar in clinical geometry (it leads; a polish follows)
 CLINICAL_LABELS = {"small": "up to 40 mm / 30 deg", "large": "40-60 mm / 30-45 deg"}
-
-
-def is_training_ct(name: str) -> bool:
-    return any(ct_name(Path(t)) == name for t in TRAINING_CTS)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -639,9 +639,7 @@ def main() -> int:
             by_ct.setdefault(r["ct"], []).append(r)
         held = [r for r in all_rows if not is_training_ct(r["ct"])]
         for name, rows in by_ct.items():
-            mark = " -- TRAINING CT (used to train the shipped network; not held out)" if is_training_ct(name) else \
-                " (held out of training)"
-            out(f"## {name}{mark}: {len(rows)} cases")
+            out(f"## {name}{training_mark(name)}: {len(rows)} cases")
             out()
             group_table(rows, methods, out)
         if len({r["ct"] for r in held}) > 1:

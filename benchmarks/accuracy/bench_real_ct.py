@@ -52,10 +52,12 @@ from benchmarks.bench_common import (
     ct_name,
     end_run,
     find_cts,
+    is_training_ct,
     script_parser,
     set_threads,
     signed,
     start_run,
+    training_mark,
 )
 
 REPO = Path(__file__).resolve().parents[2]
@@ -322,14 +324,17 @@ def main() -> int:
         out("no CT could be evaluated")
         return 2
     for name, rows in per_ct:
-        out(f"## {name} ({len(rows)} cases)")
+        out(f"## {name}{training_mark(name)}: {len(rows)} cases")
         out()
         summary_table(rows, methods, out)
         out()
-    if len(per_ct) > 1:
-        out(f"## all held-out CTs ({len(all_rows)} cases)")
+    held = [r for name, rows in per_ct if not is_training_ct(name) for r in rows]
+    trained = [name for name, _ in per_ct if is_training_ct(name)]
+    if len(per_ct) > 1 and held:
+        out(f"## all held-out CTs ({len(held)} cases)" + (f"; not in this table, the training CTs {', '.join(trained)}"
+                                                           if trained else ""))
         out()
-        summary_table(all_rows, methods, out)
+        summary_table(held, methods, out)
         out()
     failure_list(all_rows, methods, out)
 

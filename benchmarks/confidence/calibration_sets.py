@@ -28,12 +28,7 @@ from typing import Any
 import numpy as np
 import SimpleITK as sitk
 
-from monai_rigidreg.io.shared_data import TRAINING_CTS
-
 SUCCESS_MM = 2.0
-NEXT_TRAINING_CTS = TRAINING_CTS
-"""In training of the next network (the context network on main); the shipped weights saw only the last one."""
-SHIPPED_TRAINING_CTS = ("abdomen_pelvis_totalsegmentator_example_ct",)
 NEGATIVE_PARTNERS = (  # (CT, a CBCT of another body region, a CBCT of another patient's same region)
     ("thorax_4dct_phase00_itkelastix", "head_tigre_ct", "thorax_tcia_cptac_pda_ct"),
     ("head_tigre_ct", "thorax_4dct_phase00_itkelastix", "head_tcia_cptac_lscc_ct"),
