@@ -231,6 +231,9 @@ def main() -> int:
                     help="fine passes of a CorrelationRigidNet at inference (default: the bundle's)")
     ap.add_argument("--subcell", choices=("softargmax", "parabola"), default=None,
                     help="how a CorrelationRigidNet's fine level reads its matches (default: the bundle's)")
+    ap.add_argument("--native-final-norm-mm", type=float, default=None,
+                    help="the last level's final pass on the normalised local contrast at this sigma (mm; "
+                         "RigidRegistrar native_final_norm_mm; default: the bundle's, off)")
     ap.add_argument("--results", type=Path, default=None, help="also write the printed text to FILE")
     args = ap.parse_args()
     if args.num_cases < 1 or args.threads < 1:
@@ -258,7 +261,9 @@ def main() -> int:
 
     bundle = (f"{args.bundle or 'the shipped bundle'}"
               + (f"; fine passes {args.fine_passes}" if args.fine_passes is not None else "")
-              + (f"; subcell {args.subcell}" if args.subcell is not None else ""))
+              + (f"; subcell {args.subcell}" if args.subcell is not None else "")
+              + (f"; final pass on the normalised contrast at {args.native_final_norm_mm:g} mm"
+                 if args.native_final_norm_mm is not None else ""))
     monitor, t_start = start_run(out, __spec__.name, args.threads, args.device, bundle)
     methods = checked_peers(methods, out)  # ANTs reads ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS (set_threads) here
     out(f"methods: {' '.join(methods)}; {args.num_cases} {args.protocol}-protocol cases per CT, seed {args.seed}; "
@@ -281,6 +286,8 @@ def main() -> int:
         if not hasattr(fine, "subcell"):
             ap.error("--subcell needs a bundle whose regression is a CorrelationRigidNet")
         fine.subcell = args.subcell
+    if registrar is not None and args.native_final_norm_mm is not None:
+        registrar.native_final_norm_mm = float(args.native_final_norm_mm)
     all_rows: list[dict] = []
     per_ct: list[tuple[str, list[dict]]] = []
     timing: list[str] = []

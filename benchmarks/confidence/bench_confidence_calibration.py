@@ -80,6 +80,8 @@ def collect(args: Any, out: Tee) -> None:
         overlap.OVERLAP_WEIGHTED_BELOW = -1.0
     registrar = monai_rigidreg.RigidRegistrar.from_bundle(args.bundle, device="cpu")
     registrar.adapt_threads = False
+    if args.native_final_norm_mm is not None:  # the candidate against the CBCT's shading bias (off by default)
+        registrar.native_final_norm_mm = float(args.native_final_norm_mm)
     args.cases.parent.mkdir(parents=True, exist_ok=True)
     done = _done(args.cases)
     generators = []
@@ -458,6 +460,9 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=0, help="stop after this many new cases (0: all)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--bundle", type=Path, default=None)
+    ap.add_argument("--native-final-norm-mm", type=float, default=None,
+                    help="--collect with the last level's final pass on the normalised local contrast at this sigma "
+                         "(mm; RigidRegistrar native_final_norm_mm; default: the bundle's, off)")
     ap.add_argument("--results", type=Path, default=None)
     ap.add_argument("--note", default="", help="a line for the result file's header (e.g. the machine's load while "
                                                "the cases were collected)")

@@ -34,6 +34,7 @@ Usage::
     python -m benchmarks.speed.bench_speed ... --wait-policy ACTIVE   # libgomp's default spinning, for comparison
     python -m benchmarks.speed.bench_speed ... --spin-count 10000     # GOMP_SPINCOUNT: spin this long before sleeping
     python -m benchmarks.speed.bench_speed ... --thorough   # also the thorough path (search and twin every time)
+    python -m benchmarks.speed.bench_speed ... --final-norm-mm 12   # also the last level's final pass (a candidate)
 """
 
 from __future__ import annotations
@@ -210,6 +211,9 @@ def main() -> None:
     ap.add_argument("--spin-count", default=None, help="GOMP_SPINCOUNT for this run (default: the package's)")
     ap.add_argument("--thorough", action="store_true",
                     help="also time the thorough path (register(..., thorough=True)) on the same cases in section 3")
+    ap.add_argument("--final-norm-mm", type=float, default=None,
+                    help="also time the default path with the last level's final pass on the normalised local "
+                         "contrast at this sigma (RigidRegistrar native_final_norm_mm, off by default) in section 3")
     ap.add_argument("--skip", nargs="*", default=[], choices=["startup", "cli", "load", "batch"])
     ap.add_argument("--methods", nargs="+", default=["elastix"], choices=list(BASELINES),
                     help="baselines of the in-process section beside the default path (default elastix; also sitk "
@@ -305,6 +309,11 @@ def main() -> None:
     registrar = monai_rigidreg.RigidRegistrar.from_bundle()
     ours = in_process(registrar, ct, cases)
     thorough = in_process(registrar, ct, cases, thorough=True) if args.thorough else None
+    final_norm = None
+    if args.final_norm_mm is not None:
+        registrar.native_final_norm_mm = float(args.final_norm_mm)
+        final_norm = in_process(registrar, ct, cases)
+        registrar.native_final_norm_mm = None
     rows_of = {m: baseline_rows(ct, cases, m) for m in baselines}
     t_elx = float(np.median([r["time_s"] for r in rows_of["elastix"]]))
     out("| method | n | median s / case | mean TRE (mm) | median TRE (mm) | success (<2 mm) | speed-up |")
@@ -312,6 +321,8 @@ def main() -> None:
     t_ours = summarize(out, "monai-rigidreg (default path)", ours, t_elx)
     if thorough is not None:
         summarize(out, "monai-rigidreg (--thorough)", thorough, t_elx)
+    if final_norm is not None:
+        summarize(out, f"monai-rigidreg (final pass at {args.final_norm_mm:g} mm)", final_norm, t_elx)
     for m in baselines:
         summarize(out, BASELINES[m], rows_of[m], None if m == "elastix" else t_elx)
     out("\nmedian seconds per stage (0 where a stage did not run): " + stage_medians(ours))
@@ -320,6 +331,8 @@ def main() -> None:
     if thorough is not None:
         out("--thorough, median seconds per stage: " + stage_medians(thorough))
         out(f"--thorough flagged: {sum(r['flagged'] for r in thorough)} of {len(thorough)}")
+    if final_norm is not None:
+        out("--final-norm-mm, median seconds per stage: " + stage_medians(final_norm))
     out(f"load average (1/5/15 min): {load_text()}")
 
     if "load" not in args.skip:

@@ -45,8 +45,8 @@ from monai_rigidreg.registration.search import matrix_distance_mm
 if TYPE_CHECKING:
     from monai_rigidreg.registration.state import Background, RegistrationState
 
-__all__ = ["CANDIDATE_SHARE_MAX", "EARLY_SWAP_MAX_CHANGE_MM", "NATIVE_CONVERGED_MM", "NATIVE_MAX_PASSES",
-           "LastLevelStage", "native_grid", "refine_native", "support_reach"]
+__all__ = ["CANDIDATE_SHARE_MAX", "EARLY_SWAP_MAX_CHANGE_MM", "FINAL_NORM_MAX_MM", "NATIVE_CONVERGED_MM",
+           "NATIVE_MAX_PASSES", "LastLevelStage", "native_grid", "refine_native", "support_reach"]
 
 NATIVE_CONVERGED_MM = 0.5
 """The last level runs again from its own result while its latest pass moved the estimate by more than this (mm, the
@@ -66,6 +66,12 @@ view as the network's estimate places it, is used when the last level moved that
 ``details.native_level.change_mm``, the mean over the network grid's points); beyond it the twin is computed again
 from the refined estimate (``details.swap_estimate``: ``"beside the last level"`` or ``"after the last level"``).
 On the clinical-geometry pairs the last level moves a converged estimate by a few tenths of a millimetre."""
+
+FINAL_NORM_MAX_MM = 1.5
+"""The last level's final pass on the normalised local contrast (``RigidRegistrar(native_final_norm_mm=)``, off by
+default) is kept where it moves the converged estimate by at most this (mm, the mean over the network grid's
+points): the shading bias it removes measured up to about 0.9 mm (``docs/trust.md``); a larger move is another
+optimum, not a correction."""
 
 CANDIDATE_SHARE_MAX = 0.8
 """The last level's steps go over the candidate voxels (:func:`support_reach`) only where these are at most this
@@ -199,6 +205,7 @@ class LastLevelStage:
     native_bias_degree_roi: int
     native_highpass_sigma_mm: float | None
     native_max_voxels: int
+    native_final_norm_mm: float | None
     estimate: Callable[..., np.ndarray]
     _in_background: Callable[..., Background]
     _fixed_support: Callable[..., torch.Tensor | None]
@@ -288,4 +295,28 @@ class LastLevelStage:
                   "highpass_sigma_mm": float(sigma), "change_mm": round(change, 3),
                   "passes": len(moves), "last_pass_mm": round(moves[-1], 3),
                   "exhausted": converge and 1 < NATIVE_MAX_PASSES <= len(moves), **report}
+        norm = self.native_final_norm_mm
+        if converge and norm is not None and moves[-1] <= NATIVE_CONVERGED_MM:
+            refined = self._final_norm_pass(fixed_img, moving_img, refined, fov_img, weights, grid, sigma, degree,
+                                            norm, detail)
         return refined, detail
+
+    def _final_norm_pass(self, fixed_img: sitk.Image, moving_img: sitk.Image, matrix: np.ndarray,
+                         fov_img: sitk.Image, weights: list[sitk.Image], grid: Grid, sigma: float, degree: int,
+                         norm_mm: float, detail: dict[str, Any]) -> np.ndarray:
+        """One more pass of the last level from its converged result with the local contrast normalised over
+        ``norm_mm`` and no intensity channel
+        (:func:`~monai_rigidreg.networks.alignment_features.alignment_features`): the CBCT's
+        shading (scatter, beam hardening) no longer pulls the pose. Kept where it moves the estimate by at most
+        :data:`FINAL_NORM_MAX_MM`; records ``detail["final_pass"]`` (``move_mm``, ``kept``). The precision report
+        (``expected_tre_mm``, what the calibrated confidence reads) stays the default features'."""
+        stage = self.network.fine_stage
+        refined, _ = refine_native(
+            fixed_img, moving_img, matrix, fov_img, weights, highpass_sigma_mm=sigma,
+            highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm, bias_degree=degree,
+            device=self.device, tolerance=getattr(stage, "tolerance", None), secant=getattr(stage, "secant", False),
+            max_voxels=self.native_max_voxels, contrast_norm_sigma_mm=norm_mm, intensity_weight=0.0)
+        move = matrix_distance_mm(refined, matrix, grid_points(grid, 8))
+        kept = move <= FINAL_NORM_MAX_MM
+        detail["final_pass"] = {"contrast_norm_sigma_mm": norm_mm, "move_mm": round(move, 3), "kept": bool(kept)}
+        return refined if kept else matrix

@@ -143,6 +143,10 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
             call's ``thorough=True`` asks for one call. Default ``True`` (the bundle's ``network_leads``).
         native_max_voxels: the last level's grid holds at most this many voxels (its spacing grows by 1.25x steps from
             the inputs' finer spacing until it does, :func:`~monai_rigidreg.registration.last_level.native_grid`).
+        native_final_norm_mm: a candidate against the CBCT's shading bias (off by default, ``None``): once the last
+            level has converged, one more pass on the local contrast normalised over a Gaussian of this sigma (mm)
+            without the intensity channel, kept where it moves the estimate by at most
+            :data:`~monai_rigidreg.registration.last_level.FINAL_NORM_MAX_MM` (``details.native_level.final_pass``).
 
     ``lead_fallback`` (attribute, default ``True``): ``False`` records the network-led path's check without running
     its fallback (``python -m benchmarks.accuracy.bench_lead_check`` measures the check that way).
@@ -175,6 +179,7 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
         native_highpass_sigma_mm: float | None = None,
         network_leads: bool = True,
         native_max_voxels: int = 1_500_000,
+        native_final_norm_mm: float | None = None,
     ) -> None:
         if network_size is None or network_spacing is None:
             shipped = NetworkGridSpec.from_bundle()
@@ -235,6 +240,9 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
         if int(native_max_voxels) < 512:
             raise InputError(f"native_max_voxels must be >= 512, got {native_max_voxels}")
         self.native_max_voxels = int(native_max_voxels)
+        if native_final_norm_mm is not None and not float(native_final_norm_mm) > 0:
+            raise InputError(f"native_final_norm_mm must be > 0 mm (or None), got {native_final_norm_mm}")
+        self.native_final_norm_mm = None if native_final_norm_mm is None else float(native_final_norm_mm)
         self.lead_fallback = True
 
     @property
