@@ -273,15 +273,12 @@ class LastLevelStage:
         sigma = stage.highpass_sigma_mm if self.native_highpass_sigma_mm is None else self.native_highpass_sigma_mm
 
         report: dict[str, Any] = {}
+        settings = self._pass_settings(sigma, degree)
 
         def one_pass(start: np.ndarray) -> tuple[np.ndarray, Grid]:
-            return refine_native(
-                fixed_img, moving_img, start, fov_img, weights, highpass_sigma_mm=sigma,
-                highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm,
-                bias_degree=degree, device=self.device, tolerance=getattr(stage, "tolerance", None),
-                secant=getattr(stage, "secant", False), max_voxels=self.native_max_voxels, report=report,
-                contrast_norm_sigma_mm=getattr(stage, "contrast_norm_sigma_mm", None),
-                intensity_weight=getattr(stage, "intensity_weight", 1.0))
+            return refine_native(fixed_img, moving_img, start, fov_img, weights, report=report, **settings,
+                                 contrast_norm_sigma_mm=getattr(stage, "contrast_norm_sigma_mm", None),
+                                 intensity_weight=getattr(stage, "intensity_weight", 1.0))
 
         refined, native_grid = one_pass(matrix)
         points = grid_points(grid, 8)
@@ -297,25 +294,31 @@ class LastLevelStage:
                   "exhausted": converge and 1 < NATIVE_MAX_PASSES <= len(moves), **report}
         norm = self.native_final_norm_mm
         if converge and norm is not None and moves[-1] <= NATIVE_CONVERGED_MM:
-            refined = self._final_norm_pass(fixed_img, moving_img, refined, fov_img, weights, grid, sigma, degree,
-                                            norm, detail)
+            refined = self._final_norm_pass(fixed_img, moving_img, refined, fov_img, weights, grid, settings, norm,
+                                            detail)
         return refined, detail
 
+    def _pass_settings(self, sigma: float, degree: int) -> dict[str, Any]:
+        """The keyword arguments of :func:`refine_native` every pass of :meth:`_native` shares: the fine stage's
+        feature and step settings, the local contrast at ``sigma`` mm, the bias ``degree``, the grid's cap."""
+        stage = self.network.fine_stage
+        return {"highpass_sigma_mm": sigma, "highpass_weight": stage.highpass_weight,
+                "support_erosion_mm": stage.support_erosion_mm, "bias_degree": degree, "device": self.device,
+                "tolerance": getattr(stage, "tolerance", None), "secant": getattr(stage, "secant", False),
+                "max_voxels": self.native_max_voxels}
+
     def _final_norm_pass(self, fixed_img: sitk.Image, moving_img: sitk.Image, matrix: np.ndarray,
-                         fov_img: sitk.Image, weights: list[sitk.Image], grid: Grid, sigma: float, degree: int,
+                         fov_img: sitk.Image, weights: list[sitk.Image], grid: Grid, settings: dict[str, Any],
                          norm_mm: float, detail: dict[str, Any]) -> np.ndarray:
         """One more pass of the last level from its converged result with the local contrast normalised over
         ``norm_mm`` and no intensity channel
         (:func:`~monai_rigidreg.networks.alignment_features.alignment_features`): the CBCT's
         shading (scatter, beam hardening) no longer pulls the pose. Kept where it moves the estimate by at most
-        :data:`FINAL_NORM_MAX_MM`; records ``detail["final_pass"]`` (``move_mm``, ``kept``). The precision report
+        :data:`FINAL_NORM_MAX_MM`; records ``detail["final_pass"]`` (``move_mm``, ``kept``); ``settings``: the other
+        passes' (:meth:`_pass_settings`). The precision report
         (``expected_tre_mm``, what the calibrated confidence reads) stays the default features'."""
-        stage = self.network.fine_stage
-        refined, _ = refine_native(
-            fixed_img, moving_img, matrix, fov_img, weights, highpass_sigma_mm=sigma,
-            highpass_weight=stage.highpass_weight, support_erosion_mm=stage.support_erosion_mm, bias_degree=degree,
-            device=self.device, tolerance=getattr(stage, "tolerance", None), secant=getattr(stage, "secant", False),
-            max_voxels=self.native_max_voxels, contrast_norm_sigma_mm=norm_mm, intensity_weight=0.0)
+        refined, _ = refine_native(fixed_img, moving_img, matrix, fov_img, weights, **settings,
+                                   contrast_norm_sigma_mm=norm_mm, intensity_weight=0.0)
         move = matrix_distance_mm(refined, matrix, grid_points(grid, 8))
         kept = move <= FINAL_NORM_MAX_MM
         detail["final_pass"] = {"contrast_norm_sigma_mm": norm_mm, "move_mm": round(move, 3), "kept": bool(kept)}
