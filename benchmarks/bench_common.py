@@ -80,6 +80,20 @@ def training_mark(name: str) -> str:
             else " (held out of training)")
 
 
+def add_final_norm_option(ap: argparse.ArgumentParser) -> None:
+    """``--native-final-norm-mm``: the registrar's last-level final pass on the normalised local contrast (a
+    candidate, off by default); :func:`apply_final_norm_option` sets it on a loaded registrar."""
+    ap.add_argument("--native-final-norm-mm", type=float, default=None,
+                    help="the last level's final pass on the normalised local contrast at this sigma (mm; "
+                         "RigidRegistrar native_final_norm_mm; default: the bundle's, off)")
+
+
+def apply_final_norm_option(registrar: Any, args: argparse.Namespace) -> None:
+    """Set ``--native-final-norm-mm`` (:func:`add_final_norm_option`) on ``registrar`` where it was given."""
+    if registrar is not None and args.native_final_norm_mm is not None:
+        registrar.native_final_norm_mm = float(args.native_final_norm_mm)
+
+
 def find_cts(requested: list[str] | None, out: Tee, defaults: tuple[str, ...]) -> list[Path]:
     """The CTs to use (paths, or names of files in the data folder); absent ones are skipped with the reason."""
     from monai_rigidreg.io.shared_data import shared_data_dir

@@ -86,6 +86,8 @@ import numpy as np
 
 from benchmarks.bench_common import (
     Tee,
+    add_final_norm_option,
+    apply_final_norm_option,
     checked_peers,
     ct_name,
     end_run,
@@ -528,9 +530,7 @@ def main() -> int:
     ap.add_argument("--simulate-only", action="store_true", help="build (or resume) the pairs, register nothing")
     ap.add_argument("--native-max-voxels", type=int, default=None,
                     help="the last level's grid at most this many voxels (default: the bundle's / the registrar's)")
-    ap.add_argument("--native-final-norm-mm", type=float, default=None,
-                    help="the last level's final pass on the normalised local contrast at this sigma (mm; "
-                         "RigidRegistrar native_final_norm_mm; default: the bundle's, off)")
+    add_final_norm_option(ap)
     ap.add_argument("--no-native-level", action="store_true",
                     help="the network without its last level at native resolution (RigidRegistrar native_level)")
     ap.add_argument("--no-global-init", action="store_true",
@@ -585,8 +585,7 @@ def main() -> int:
         registrar.global_init = not args.no_global_init
         if args.native_max_voxels is not None:
             registrar.native_max_voxels = int(args.native_max_voxels)
-        if args.native_final_norm_mm is not None:
-            registrar.native_final_norm_mm = float(args.native_final_norm_mm)
+        apply_final_norm_option(registrar, args)
     all_rows: list[dict[str, Any]] = []
     run_notes: list[str] = []
     for path in cts:

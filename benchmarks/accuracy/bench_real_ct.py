@@ -48,6 +48,8 @@ import numpy as np
 
 from benchmarks.bench_common import (
     Tee,
+    add_final_norm_option,
+    apply_final_norm_option,
     checked_peers,
     ct_name,
     end_run,
@@ -231,9 +233,7 @@ def main() -> int:
                     help="fine passes of a CorrelationRigidNet at inference (default: the bundle's)")
     ap.add_argument("--subcell", choices=("softargmax", "parabola"), default=None,
                     help="how a CorrelationRigidNet's fine level reads its matches (default: the bundle's)")
-    ap.add_argument("--native-final-norm-mm", type=float, default=None,
-                    help="the last level's final pass on the normalised local contrast at this sigma (mm; "
-                         "RigidRegistrar native_final_norm_mm; default: the bundle's, off)")
+    add_final_norm_option(ap)
     ap.add_argument("--results", type=Path, default=None, help="also write the printed text to FILE")
     args = ap.parse_args()
     if args.num_cases < 1 or args.threads < 1:
@@ -286,8 +286,7 @@ def main() -> int:
         if not hasattr(fine, "subcell"):
             ap.error("--subcell needs a bundle whose regression is a CorrelationRigidNet")
         fine.subcell = args.subcell
-    if registrar is not None and args.native_final_norm_mm is not None:
-        registrar.native_final_norm_mm = float(args.native_final_norm_mm)
+    apply_final_norm_option(registrar, args)
     all_rows: list[dict] = []
     per_ct: list[tuple[str, list[dict]]] = []
     timing: list[str] = []

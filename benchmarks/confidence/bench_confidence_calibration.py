@@ -44,7 +44,14 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.bench_common import Tee, end_run, script_parser, start_run
+from benchmarks.bench_common import (
+    Tee,
+    add_final_norm_option,
+    apply_final_norm_option,
+    end_run,
+    script_parser,
+    start_run,
+)
 
 DEFAULT_FEATURES = ("log_swap_tre_counted", "local_gain", "edge_ncc")
 """The shipped model's features: chosen among ten candidate sets (with and without ``tissue_on_air``,
@@ -80,8 +87,7 @@ def collect(args: Any, out: Tee) -> None:
         overlap.OVERLAP_WEIGHTED_BELOW = -1.0
     registrar = monai_rigidreg.RigidRegistrar.from_bundle(args.bundle, device="cpu")
     registrar.adapt_threads = False
-    if args.native_final_norm_mm is not None:  # the candidate against the CBCT's shading bias (off by default)
-        registrar.native_final_norm_mm = float(args.native_final_norm_mm)
+    apply_final_norm_option(registrar, args)  # the candidate against the CBCT's shading bias
     args.cases.parent.mkdir(parents=True, exist_ok=True)
     done = _done(args.cases)
     generators = []
@@ -460,9 +466,7 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=0, help="stop after this many new cases (0: all)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--bundle", type=Path, default=None)
-    ap.add_argument("--native-final-norm-mm", type=float, default=None,
-                    help="--collect with the last level's final pass on the normalised local contrast at this sigma "
-                         "(mm; RigidRegistrar native_final_norm_mm; default: the bundle's, off)")
+    add_final_norm_option(ap)  # with --collect
     ap.add_argument("--results", type=Path, default=None)
     ap.add_argument("--note", default="", help="a line for the result file's header (e.g. the machine's load while "
                                                "the cases were collected)")

@@ -294,8 +294,8 @@ class LastLevelStage:
                   "exhausted": converge and 1 < NATIVE_MAX_PASSES <= len(moves), **report}
         norm = self.native_final_norm_mm
         if converge and norm is not None and moves[-1] <= NATIVE_CONVERGED_MM:
-            refined = self._final_norm_pass(fixed_img, moving_img, refined, fov_img, weights, grid, settings, norm,
-                                            detail)
+            refined = self._final_norm_pass(fixed_img, moving_img, refined, fov_img, weights, points, settings,
+                                            norm, detail)
         return refined, detail
 
     def _pass_settings(self, sigma: float, degree: int) -> dict[str, Any]:
@@ -308,18 +308,18 @@ class LastLevelStage:
                 "max_voxels": self.native_max_voxels}
 
     def _final_norm_pass(self, fixed_img: sitk.Image, moving_img: sitk.Image, matrix: np.ndarray,
-                         fov_img: sitk.Image, weights: list[sitk.Image], grid: Grid, settings: dict[str, Any],
-                         norm_mm: float, detail: dict[str, Any]) -> np.ndarray:
+                         fov_img: sitk.Image, weights: list[sitk.Image], points: np.ndarray,
+                         settings: dict[str, Any], norm_mm: float, detail: dict[str, Any]) -> np.ndarray:
         """One more pass of the last level from its converged result with the local contrast normalised over
-        ``norm_mm`` and no intensity channel
-        (:func:`~monai_rigidreg.networks.alignment_features.alignment_features`): the CBCT's
-        shading (scatter, beam hardening) no longer pulls the pose. Kept where it moves the estimate by at most
-        :data:`FINAL_NORM_MAX_MM`; records ``detail["final_pass"]`` (``move_mm``, ``kept``); ``settings``: the other
-        passes' (:meth:`_pass_settings`). The precision report
-        (``expected_tre_mm``, what the calibrated confidence reads) stays the default features'."""
+        ``norm_mm`` and no intensity channel (:func:`~monai_rigidreg.networks.alignment_features.alignment_features`):
+        the CBCT's shading (scatter, beam hardening) no longer pulls the pose. Kept where it moves the estimate by at
+        most :data:`FINAL_NORM_MAX_MM` (the mean over ``points``, the network grid's, as the passes' moves); records
+        ``detail["final_pass"]`` (``move_mm``, ``kept``); ``settings``: the other passes' (:meth:`_pass_settings`).
+        The precision report (``expected_tre_mm``, what the calibrated confidence reads) stays the default
+        features'."""
         refined, _ = refine_native(fixed_img, moving_img, matrix, fov_img, weights, **settings,
                                    contrast_norm_sigma_mm=norm_mm, intensity_weight=0.0)
-        move = matrix_distance_mm(refined, matrix, grid_points(grid, 8))
+        move = matrix_distance_mm(refined, matrix, points)
         kept = move <= FINAL_NORM_MAX_MM
         detail["final_pass"] = {"contrast_norm_sigma_mm": norm_mm, "move_mm": round(move, 3), "kept": bool(kept)}
         return refined if kept else matrix

@@ -30,7 +30,7 @@ import SimpleITK as sitk
 import torch
 
 from monai_rigidreg.core.device import resolve_device
-from monai_rigidreg.core.geometry import Grid, params_to_matrix
+from monai_rigidreg.core.geometry import Grid, invert_matrix, params_to_matrix
 from monai_rigidreg.core.warp import warp_volume
 from monai_rigidreg.simulation.config import SimulationConfig
 from monai_rigidreg.simulation.phantoms import PHANTOMS, ct_center, make_phantom, mu_to_hu
@@ -110,7 +110,7 @@ def moved_object(
     obj = mu_object.to(device=device, dtype=torch.float32)[None, None]
     if np.allclose(m, np.eye(4)):
         return obj[0, 0]
-    inv = torch.as_tensor(np.linalg.inv(m), dtype=torch.float64, device=obj.device)[None]
+    inv = torch.as_tensor(invert_matrix(m), dtype=torch.float64, device=obj.device)[None]
     return warp_volume(obj, inv, object_grid, object_grid, "bilinear", padding_mode)[0, 0]
 
 
