@@ -7,7 +7,7 @@ weights from a training checkpoint (or a ``model.pt``) as ``models/model.pt``.
 and to make the shipped bundle from the run's final weights.
 
     python scripts/export_context_bundle.py training/context_run/models/checkpoint_checkpoint_epoch=40.pt \
-        scratch/context_bundle --passes 2 1
+        scratch/context_bundle --passes 4 1
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("checkpoint", type=Path, help="a training checkpoint (with 'network') or a model.pt state dict")
     ap.add_argument("output", type=Path, help="the bundle folder to write (replaced if it holds an earlier export)")
-    ap.add_argument("--passes", type=int, nargs=2, default=[2, 1], help="inference passes of the 8 mm and 4 mm levels")
+    ap.add_argument("--passes", type=int, nargs=2, default=[4, 1],
+                    help="inference passes of the 8 mm and 4 mm levels (the shipped bundle 0.6.0: 4 1; 0.5.0: 2 1)")
     ap.add_argument("--coarse-start", choices=COARSE_STARTS, default="coarse",
                     help="where the local levels start at inference (ContextCorrelationNet's coarse_start)")
     args = ap.parse_args(argv)

@@ -359,29 +359,36 @@ def test_fine_stage_switch_returns_the_regressions_own_estimate(fast_pair, tmp_p
 
 def test_the_network_alone_is_flagged_where_the_last_level_would_move_it_far(fast_pair, monkeypatch):
     """``fine_stage=False``: the last level runs from the learned estimate as a probe (the estimate is kept), and how
-    far it would move it, ``details.signals.polish_probe_mm``, is about the estimate's error: the shipped network
-    alone is about 5 mm off on the fast pair (a small phantom), the probe says so and the result is flagged
-    ``"unpolished"``; an estimate at the true motion is moved a fraction of a millimetre and not flagged for it;
-    the default path runs no probe."""
+    far it would move it, ``details.signals.polish_probe_mm``, is about the estimate's error: an estimate 4 mm and
+    3 degrees off the true motion (the network's output replaced, so the test does not depend on how good the shipped
+    weights are on this small phantom) is probed at about its error and flagged ``"unpolished"``; an estimate at the
+    true motion is moved a fraction of a millimetre and not flagged for it; the default path runs no probe."""
     from monai_rigidreg.core.geometry import recenter_params
     from monai_rigidreg.registration.calibration import POLISH_PROBE_LIMIT_MM
 
     registrar = RigidRegistrar.from_bundle(device="cpu")
     fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    truth = np.asarray(MOTION, dtype=np.float64)  # about the CT centre
+    center = register(fixed, moving, model=registrar, fine_stage=False, resample_moving=False).center
+
+    def network_at(params):
+        def estimate(moving_t, fixed_t, grid, *args, **kwargs):
+            return np.stack([recenter_params(params, center, grid.center())] * len(moving_t))
+        return estimate
+
+    off = truth + np.array([4.0, 0.0, 0.0, 0.0, 3.0, 0.0])
+    monkeypatch.setattr(registrar, "estimate_batch", network_at(off))
     alone = register(fixed, moving, model=registrar, fine_stage=False, resample_moving=False)
+    np.testing.assert_allclose(alone.params, off, atol=1e-3)  # the estimate is kept as it came
     tre = _fast_pair_tre(fast_pair, alone)
     probe = alone.details["signals"]["polish_probe_mm"]
     # the probe under-reads the error a little (0.54-0.96 of it over the calibration cases, docs/trust.md)
     assert tre > POLISH_PROBE_LIMIT_MM and 0.5 * tre < probe < 1.05 * tre
     assert "unpolished" in alone.details["flag_reasons"] and alone.flagged and alone.timings["polish_probe"] > 0
-    truth = np.asarray(MOTION, dtype=np.float64)  # about the CT centre
 
-    def at_the_truth(moving_t, fixed_t, grid, *args, **kwargs):
-        return np.stack([recenter_params(truth, alone.center, grid.center())] * len(moving_t))
-
-    monkeypatch.setattr(registrar, "estimate_batch", at_the_truth)
+    monkeypatch.setattr(registrar, "estimate_batch", network_at(truth))
     right = register(fixed, moving, model=registrar, fine_stage=False, resample_moving=False)
-    np.testing.assert_allclose(right.params, truth, atol=1e-3)  # the estimate is kept as it came
+    np.testing.assert_allclose(right.params, truth, atol=1e-3)
     assert right.details["signals"]["polish_probe_mm"] < 1.0 and "unpolished" not in right.details["flag_reasons"]
     monkeypatch.undo()
     full = register(fixed, moving, model=registrar, resample_moving=False)
