@@ -369,7 +369,7 @@ def test_the_network_alone_is_flagged_where_the_last_level_would_move_it_far(fas
     registrar = RigidRegistrar.from_bundle(device="cpu")
     fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
     truth = np.asarray(MOTION, dtype=np.float64)  # about the CT centre
-    center = register(fixed, moving, model=registrar, fine_stage=False, resample_moving=False).center
+    center = Grid.from_sitk(fixed).center()  # the result's centre (RegistrationResult.center)
 
     def network_at(params):
         def estimate(moving_t, fixed_t, grid, *args, **kwargs):
@@ -379,6 +379,7 @@ def test_the_network_alone_is_flagged_where_the_last_level_would_move_it_far(fas
     off = truth + np.array([4.0, 0.0, 0.0, 0.0, 3.0, 0.0])
     monkeypatch.setattr(registrar, "estimate_batch", network_at(off))
     alone = register(fixed, moving, model=registrar, fine_stage=False, resample_moving=False)
+    np.testing.assert_allclose(alone.center, center)
     np.testing.assert_allclose(alone.params, off, atol=1e-3)  # the estimate is kept as it came
     tre = _fast_pair_tre(fast_pair, alone)
     probe = alone.details["signals"]["polish_probe_mm"]
