@@ -461,6 +461,9 @@ def main() -> None:
     ap.add_argument("--overlap-flag-below", type=float, default=None,
                     help="score the cases with this overlap flag threshold instead of the registrar's "
                          "OVERLAP_FLAG_BELOW (to choose it)")
+    ap.add_argument("--ambiguous-gap", type=float, default=None,
+                    help="score the cases with this 'ambiguous' NCC gap instead of calibration.AMBIGUOUS_NCC_GAP "
+                         "(0: the flag off; to weigh it)")
     ap.add_argument("--version", default=f"{monai_rigidreg.__version__}-{datetime.date.today().isoformat()}")
     ap.add_argument("--write", type=Path, default=None, help="write the calibration fitted on all cases here")
     ap.add_argument("--limit", type=int, default=0, help="stop after this many new cases (0: all)")
@@ -486,6 +489,11 @@ def main() -> None:
 
             overlap.OVERLAP_FLAG_BELOW = float(args.overlap_flag_below)
             out(f"overlap flag threshold: {overlap.OVERLAP_FLAG_BELOW} (the registrar's default is overridden)")
+        if args.ambiguous_gap is not None:
+            from monai_rigidreg.registration import calibration
+
+            calibration.AMBIGUOUS_NCC_GAP = float(args.ambiguous_gap)
+            out(f"'ambiguous' NCC gap: {calibration.AMBIGUOUS_NCC_GAP} (the registrar's default is overridden)")
         fit(args, out)
     end_run(out, monitor, t0, args.results, [])
 
