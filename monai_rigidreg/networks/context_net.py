@@ -172,6 +172,9 @@ class ContextCorrelationNet(nn.Module):
             learn the match more slowly (``bench_coarse_learnability.py``): the defaults are kept in training.
         coarse_start: where the local levels start in evaluation mode (:data:`COARSE_STARTS`); training always
             starts them from the coarse level's estimate, which it supervises.
+        coarse_passes: in evaluation mode, how often the coarse level runs: each further pass matches the CBCT
+            resampled by the estimate so far against the context and composes its correction (training runs it
+            once).
 
     Shapes:
         ``forward``: ``[B, 2 * C, x, y, z]`` (moving, fixed) or ``[B, 3 * C, ...]`` (moving, fixed, context: the
@@ -205,6 +208,7 @@ class ContextCorrelationNet(nn.Module):
         coarse_start: str = "coarse",
         coarse_units: int | None = None,
         coarse_norm: str | tuple | None = None,
+        coarse_passes: int = 1,
     ) -> None:
         super().__init__()
         if coarse_start not in COARSE_STARTS:
@@ -222,6 +226,9 @@ class ContextCorrelationNet(nn.Module):
         if any(s % 4 for s in self.context_size):
             raise ValueError(f"context_size {self.context_size} must be divisible by 4")
         self.passes = tuple(int(p) for p in passes)
+        self.coarse_passes = int(coarse_passes)
+        if self.coarse_passes < 1:
+            raise ValueError(f"coarse_passes must be at least 1, got {coarse_passes}")
         self.radius = tuple(int(r) for r in radius)
         self.robust_iterations = int(robust_iterations)
         self.robust_sigma = float(robust_sigma)
@@ -380,6 +387,9 @@ class ContextCorrelationNet(nn.Module):
         if tuple(context.shape[2:]) != self.context_size:
             raise ValueError(f"context {tuple(context.shape[2:])} is not on the context grid {self.context_size}")
         total, record = self._coarse(moving, context)
+        for _ in range(0 if self.training else self.coarse_passes - 1):
+            warped = warp_volume(moving, total.detach(), self.grid, self.grid)
+            total = total @ self._coarse(warped, context)[0]
         levels = [matrix_to_params_torch(total).to(moving.dtype)]
         records = [record]
         start = "coarse" if self.training else self.coarse_start

@@ -271,3 +271,43 @@ def test_coarse_start_both_keeps_per_sample_the_start_that_matches_the_images_be
                                atol=1e-4, rtol=0)
     with pytest.raises(ValueError, match="coarse_start"):
         ContextCorrelationNet(grid_size=(32, 32, 32), grid_spacing=(4.0, 4.0, 4.0), coarse_start="search")
+
+
+def test_coarse_passes_compose_the_coarse_level_on_the_cbct_resampled_by_the_estimate(monkeypatch):
+    """``coarse_passes=2`` (evaluation only): the second coarse pass sees the CBCT warped by the first estimate and
+    its correction is composed after it (``first @ second``: fixed -> moving); training runs the coarse level once."""
+    from monai_rigidreg.core.warp import warp_volume
+
+    torch.manual_seed(0)
+    net = ContextCorrelationNet(grid_size=(32, 32, 32), grid_spacing=(4.0, 4.0, 4.0), channels=(4, 8),
+                                coarse_channels=(4, 8, 8), feat_channels=(8, 8, 4), select_cells=256,
+                                coarse_passes=2)
+    first = params_to_matrix_torch(torch.tensor([[6.0, 0, 0, 0, 0, 20.0]], dtype=torch.float64))
+    second = params_to_matrix_torch(torch.tensor([[0, 8.0, 0, 0, 0, 0]], dtype=torch.float64))
+    seen = []
+
+    def coarse(m, c):
+        seen.append(m.clone())
+        return (first if len(seen) == 1 else second).clone(), {"kind": "global"}
+
+    def still(level, fm_feats, ff, total, fixed_weight, fixed_, warped):
+        return torch.eye(4, dtype=torch.float64).expand(warped.shape[0], 4, 4).clone(), {"kind": "local"}
+
+    monkeypatch.setattr(net, "_coarse", coarse)
+    monkeypatch.setattr(net, "_local", still)
+    moving, fixed = torch.rand(1, 1, 32, 32, 32), torch.rand(1, 1, 32, 32, 32)
+    net.eval()
+    with torch.no_grad():
+        levels = net.forward_levels(moving, fixed)
+    assert len(seen) == 2 and len(levels) == 1 + sum(net.passes)
+    torch.testing.assert_close(seen[1], warp_volume(moving, first, net.grid, net.grid))
+    expected = matrix_to_params_torch(first @ second).float()
+    torch.testing.assert_close(levels[0], expected, atol=1e-4, rtol=0)
+    torch.testing.assert_close(levels[-1], expected, atol=1e-4, rtol=0)
+    assert not torch.allclose(expected, matrix_to_params_torch(second @ first).float(), atol=0.1)  # order matters
+    seen.clear()
+    net.train()
+    net.forward_levels(moving, fixed)
+    assert len(seen) == 1
+    with pytest.raises(ValueError, match="coarse_passes"):
+        ContextCorrelationNet(grid_size=(32, 32, 32), grid_spacing=(4.0, 4.0, 4.0), coarse_passes=0)
