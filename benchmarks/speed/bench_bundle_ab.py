@@ -48,6 +48,8 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5, help="registrations of each case with each bundle")
     ap.add_argument("--results", type=Path, default=None)
     args = ap.parse_args()
+    if args.rounds < 1:
+        ap.error("--rounds must be at least 1")
     out = Tee()
     cases = sorted(p for p in args.output_dir.glob("case_*") if (p / "case.json").is_file())
     if not cases:
@@ -93,12 +95,12 @@ def main() -> None:
         out(f"stages of {key} (median s): {stage_medians(rows[key])}")
     out(f"B / A (median seconds): {med['B'] / med['A']:.3f}; A - B: {med['A'] - med['B']:+.3f} s")
     out("")
-    out("| pair | TRE A (mm) | TRE B (mm) | A to B (mm, mean over the TRE points) |")
+    out("| pair (last round) | TRE A (mm) | TRE B (mm) | A to B (mm, mean over the TRE points) |")
     out("|---|---|---|---|")
-    for i, (_, _, points) in enumerate(loaded):
+    for i, (record, _, points) in enumerate(loaded):  # the last round's results
         a, b = last[("A", i)], last[("B", i)]
-        out(f"| {cases[i].name} | {rows['A'][i]['tre']:.3f} | {rows['B'][i]['tre']:.3f} | "
-            f"{_estimate_distance_mm(a, b, points):.4f} |")
+        out(f"| {cases[i].name} | {tre_mm(a.params, a.center, record, points):.3f} | "
+            f"{tre_mm(b.params, b.center, record, points):.3f} | {_estimate_distance_mm(a, b, points):.4f} |")
     out.write(args.results)
 
 
