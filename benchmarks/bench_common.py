@@ -65,18 +65,32 @@ def ct_name(path: Path) -> str:
     return name
 
 
-def is_training_ct(name: str) -> bool:
-    """Whether the real CT of this file stem (``thorax_4dct_phase00_itkelastix``, also with a data folder's suffix
-    such as ``_multi30``) is one the shipped network was trained on
-    (:data:`~monai_rigidreg.io.shared_data.TRAINING_CTS`): its cases must not be reported as held out."""
+TRAINED_ON_ENV = "BENCH_TRAINED_ON"
+"""Environment variable: the real CTs (space-separated file stems) the evaluated network was trained on, where that
+is not the shipped network's list (a leave-one-CT-out fold of ``scripts/train_loco.sh``)."""
+
+
+def trained_on() -> tuple[str, ...]:
+    """The real CTs the evaluated network was trained on: :data:`TRAINED_ON_ENV` where set, else
+    :data:`~monai_rigidreg.io.shared_data.TRAINING_CTS`."""
     from monai_rigidreg.io.shared_data import TRAINING_CTS
 
-    return any(name == t or name.startswith(f"{t}_") for t in TRAINING_CTS)
+    names = os.environ.get(TRAINED_ON_ENV, "").split()
+    return tuple(names) if names else TRAINING_CTS
+
+
+def is_training_ct(name: str) -> bool:
+    """Whether the real CT of this file stem (``thorax_4dct_phase00_itkelastix``, also with a data folder's suffix
+    such as ``_multi30``) is one the evaluated network was trained on (:func:`trained_on`): its cases must not be
+    reported as held out."""
+    return any(name == t or name.startswith(f"{t}_") for t in trained_on())
 
 
 def training_mark(name: str) -> str:
     """The heading mark of a CT's section: held out of training, or a training CT."""
-    return (" -- TRAINING CT (used to train the shipped network; not held out)" if is_training_ct(name)
+    whose = "the shipped network" if not os.environ.get(TRAINED_ON_ENV, "").split() else \
+        f"the evaluated network, {TRAINED_ON_ENV}"
+    return (f" -- TRAINING CT (used to train {whose}; not held out)" if is_training_ct(name)
             else " (held out of training)")
 
 

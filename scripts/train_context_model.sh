@@ -13,7 +13,7 @@
 # scratch; INIT_PARTIAL=1 takes only the tensors whose names and shapes match (a changed design keeping trained parts).
 # One epoch = 100 iterations of batch 4 = 400 samples; 750 epochs = 300 000 samples.
 # Held out of training (never read here): thorax_4dct_phase00_itkelastix, head_tigre_ct (and the stock Shepp-Logan
-# phantom, the validation set).
+# phantom, the validation set), unless TRAIN_CT_NAMES names them (a leave-one-CT-out fold: scripts/train_loco.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DATA=${DATA:-data}
@@ -32,6 +32,9 @@ INIT=${INIT:-}
 INIT_PARTIAL=${INIT_PARTIAL:-0}
 TRAIN_CTS=(abdomen_pelvis_totalsegmentator_example_ct head_tcia_cptac_lscc_ct thorax_tcia_cptac_pda_ct
            abdomen_pelvis_tcia_tcga_ov_ct)
+# TRAIN_CT_NAMES (space-separated file stems in SHARED) replaces the list: a leave-one-CT-out fold
+# (scripts/train_loco.sh), which may train on the held-out pair and holds out another CT
+if [ -n "${TRAIN_CT_NAMES:-}" ]; then read -r -a TRAIN_CTS <<< "$TRAIN_CT_NAMES"; fi
 cts=()
 for name in "${TRAIN_CTS[@]}"; do
     f="$SHARED/$name.nii.gz"

@@ -35,3 +35,85 @@ def test_benchmarks_label_every_training_ct_as_one():
         assert is_training_ct(name) and is_training_ct(f"{name}_rtk_ideal") and "TRAINING CT" in training_mark(name)
     for name in (*HELD_OUT_CTS, "my_own_ct", "head_tigre_ct_multi30"):
         assert not is_training_ct(name) and training_mark(name) == " (held out of training)"
+
+
+def _fake_data(tmp_path):
+    """A DATA folder with two simulated sets (one made from the abdomen CT, as make_training_data.sh does) and a
+    SHARED folder naming the six real CTs (empty files: the fold's preparation only checks that they exist)."""
+    import json
+
+    data, shared = tmp_path / "data", tmp_path / "shared"
+    shared.mkdir()
+    for name in (*TRAINING_CTS, *HELD_OUT_CTS):
+        (shared / f"{name}.nii.gz").write_bytes(b"")
+    items = []
+    for folder, phantom in (("abdomen", f"/x/{TRAINING_CTS[0]}.nii.gz"), ("synth_full", "synth")):
+        (data / folder).mkdir(parents=True)
+        (data / folder / "simulation.json").write_text(json.dumps({"config": {"phantom": phantom}}))
+        for k in range(2):
+            items.append({"fixed": f"{folder}/objects/obj{k}_simct.nii.gz", "moving": f"{folder}/cases/c{k}.nii.gz",
+                          "moving_fov": f"{folder}/cases/c{k}_fov.nii.gz", "object": Path(phantom).name,
+                          "params": [0.0] * 6})
+    (data / "train.json").write_text(json.dumps({"training": items}))
+    (data / "val_paper").mkdir()
+    return data, shared
+
+
+def _loco(tmp_path, hold, data, shared):
+    import os
+    import subprocess
+
+    env = {**os.environ, "DATA": str(data), "SHARED": str(shared), "LOCO_DATA": str(tmp_path / "loco"),
+           "PREPARE_ONLY": "1"}
+    return subprocess.run(["bash", str(REPO / "scripts" / "train_loco.sh"), hold], env=env, capture_output=True,
+                          text=True, timeout=120)
+
+
+def test_a_loco_fold_trains_on_the_other_five_cts_without_the_pairs_simulated_from_its_held_out_ct(tmp_path):
+    import json
+
+    data, shared = _fake_data(tmp_path)
+    hold = TRAINING_CTS[0]
+    run = _loco(tmp_path, hold, data, shared)
+    assert run.returncode == 0, run.stderr
+    fold = json.loads((tmp_path / "loco" / hold / "train.json").read_text())["training"]
+    assert [Path(it["fixed"]).parts[-3] for it in fold] == ["synth_full", "synth_full"]  # the abdomen set dropped
+    assert all(Path(it[k]).is_absolute() and str(data.resolve()) in it[k] for it in fold
+               for k in ("fixed", "moving", "moving_fov"))
+    names = re.search(r'TRAIN_CT_NAMES="([^"]*)"', run.stdout).group(1).split()
+    assert sorted(names) == sorted(n for n in (*TRAINING_CTS, *HELD_OUT_CTS) if n != hold)
+    assert (tmp_path / "loco" / hold / "val_paper").resolve() == (data / "val_paper").resolve()
+    # a fold holding out the head CT keeps every simulated pair and trains on the held-out pair's thorax
+    other = _loco(tmp_path, HELD_OUT_CTS[1], data, shared)
+    assert other.returncode == 0, other.stderr
+    assert len(json.loads((tmp_path / "loco" / HELD_OUT_CTS[1] / "train.json").read_text())["training"]) == 4
+    assert HELD_OUT_CTS[0] in re.search(r'TRAIN_CT_NAMES="([^"]*)"', other.stdout).group(1).split()
+
+
+def test_a_loco_fold_refuses_an_unknown_ct_and_writes_nothing(tmp_path):
+    data, shared = _fake_data(tmp_path)
+    run = _loco(tmp_path, "my_ct", data, shared)
+    assert run.returncode == 2 and "HOLD_OUT must be one of" in run.stderr
+    assert not (tmp_path / "loco").exists()
+
+
+def test_benchmarks_label_a_fold_s_training_cts_from_the_environment(monkeypatch):
+    from benchmarks.bench_common import TRAINED_ON_ENV, is_training_ct, training_mark
+
+    monkeypatch.setenv(TRAINED_ON_ENV, f"{HELD_OUT_CTS[0]} {TRAINING_CTS[1]}")
+    assert is_training_ct(HELD_OUT_CTS[0]) and is_training_ct(TRAINING_CTS[1])
+    assert not is_training_ct(TRAINING_CTS[0])  # the fold's held-out CT, a training CT of the shipped network
+    assert "evaluated network" in training_mark(HELD_OUT_CTS[0])
+    assert training_mark(TRAINING_CTS[0]) == " (held out of training)"
+
+
+def test_the_training_script_takes_a_fold_s_ct_list_from_train_ct_names(tmp_path):
+    import os
+    import subprocess
+
+    env = {**os.environ, "TRAIN_CT_NAMES": f"{HELD_OUT_CTS[0]} not_a_ct", "SHARED": str(tmp_path)}
+    (tmp_path / f"{HELD_OUT_CTS[0]}.nii.gz").write_bytes(b"")
+    run = subprocess.run(["bash", str(REPO / "scripts" / "train_context_model.sh"), str(tmp_path / "run"), "1"],
+                         env=env, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2 and "not_a_ct.nii.gz" in run.stderr  # the list it checks is TRAIN_CT_NAMES'
+    assert TRAINING_CTS[0] not in run.stderr and not (tmp_path / "run").exists()

@@ -1,0 +1,73 @@
+#!/usr/bin/env bash
+# One fold of the leave-one-CT-out table (issue 32): the context network trained from scratch, with the bundle's
+# config and sampler (scripts/train_context_model.sh), on five of the six real CTs of SHARED (all but HOLD_OUT) and on
+# the simulated phantom and synthetic-anatomy pairs of DATA except those simulated from HOLD_OUT; EPOCHS epochs of
+# 400 samples (default 50: 20 000 samples), checkpointed every epoch and resumable like the main run.
+#   usage: [DATA=data] [SHARED=../shared/data] [LOCO_DATA=data_loco] [DEVICE=cpu|cuda] [BATCH=4] [EPOCH_LENGTH=100] \
+#          [CASES=12] [SIM_DEVICE=cpu|cuda] [SAMPLER_DEVICE=cpu|cuda] [WORKERS=1] [PREPARE_ONLY=1] \
+#          scripts/train_loco.sh HOLD_OUT [RUN_DIR] [EPOCHS] [--resume]
+# HOLD_OUT: one of the six real CTs' file stems (python -c "from monai_rigidreg.io.shared_data import TRAINING_CTS,
+# HELD_OUT_CTS; print(*TRAINING_CTS, *HELD_OUT_CTS)"). RUN_DIR defaults to training/loco/HOLD_OUT. The fold's data
+# folder LOCO_DATA/HOLD_OUT gets the filtered train.json, a link to DATA/val_paper and its own clinical pairs of the
+# five CTs (simulated on the first call, about 2-3 minutes per CT on 2 cores); PREPARE_ONLY=1 writes the filtered
+# train.json and the link and prints the training command instead of running it. On a GPU (about 10 minutes a call):
+#   DEVICE=cuda BATCH=16 EPOCH_LENGTH=25 SAMPLER_DEVICE=cuda SIM_DEVICE=cuda WORKERS=0 scripts/train_loco.sh HOLD_OUT
+# Then the fold's network alone on its held-out CT (BENCH_TRAINED_ON labels the CTs the fold trained on):
+#   python scripts/export_context_bundle.py "$(ls -t RUN_DIR/models/checkpoint_*.pt | head -1)" OUT --passes 4 1
+#   BENCH_TRAINED_ON="<the five>" python -m benchmarks.accuracy.bench_real_ct --ct SHARED/HOLD_OUT.nii.gz \
+#       --methods network-regression --num-cases 12 --threads 1 --bundle OUT --results ...
+# Exit status 2 (nothing written) for an unknown HOLD_OUT or a missing CT; the training script's own checks apply
+# (a RUN_DIR holding a run needs --resume; --resume needs a matching checkpoint).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+HOLD=${1:-}
+[ -n "$HOLD" ] || { echo "usage: scripts/train_loco.sh HOLD_OUT [RUN_DIR] [EPOCHS] [--resume]" >&2; exit 2; }
+RUN=${2:-training/loco/$HOLD}
+EPOCHS=${3:-50}
+RESUME=${4:-}
+DATA=${DATA:-data}
+SHARED=${SHARED:-../shared/data}
+LOCO_DATA=${LOCO_DATA:-data_loco}
+read -r -a REAL <<< "$(python -c "from monai_rigidreg.io.shared_data import TRAINING_CTS, HELD_OUT_CTS
+print(*TRAINING_CTS, *HELD_OUT_CTS)")"
+others=()
+found=0
+for name in "${REAL[@]}"; do
+    if [ "$name" = "$HOLD" ]; then found=1; else others+=("$name"); fi
+    [ -f "$SHARED/$name.nii.gz" ] || { echo "train_loco: missing real CT $SHARED/$name.nii.gz" >&2; exit 2; }
+done
+if [ "$found" != 1 ]; then
+    echo "train_loco: HOLD_OUT must be one of: ${REAL[*]} (got '$HOLD')" >&2; exit 2
+fi
+if [ ! -f "$DATA/train.json" ]; then
+    scripts/make_training_data.sh "$DATA" "$SHARED"
+fi
+FOLD="$LOCO_DATA/$HOLD"
+mkdir -p "$FOLD"
+[ -e "$FOLD/val_paper" ] || ln -s "$(realpath "$DATA/val_paper")" "$FOLD/val_paper"
+# the simulated pairs, less those simulated from the held-out CT (their folder's simulation.json names it)
+python - "$DATA" "$FOLD/train.json" "$HOLD" <<'PY'
+import json, sys
+from pathlib import Path
+data, out, hold = Path(sys.argv[1]).resolve(), Path(sys.argv[2]), sys.argv[3]
+# a folder simulated from the held-out CT names it as its phantom (simulation.json); each item names its object too
+dropped = {p.parent.name for p in data.glob("*/simulation.json")
+           if Path(str(json.loads(p.read_text())["config"].get("phantom") or "")).name.startswith(hold + ".")}
+base = json.loads((data / "train.json").read_text())
+items = []
+for it in base["training"]:
+    if Path(it["fixed"]).parts[0] in dropped or str(it.get("object", "")).startswith(hold + "."):
+        continue
+    # the fold's datalist lives elsewhere: its paths absolute
+    items.append({**it, **{k: str(data / it[k]) for k in ("fixed", "moving", "moving_fov") if it.get(k)}})
+out.write_text(json.dumps({**base, "training": items}, indent=1))
+print(f"train_loco: {len(items)} of {len(base['training'])} simulated pairs kept (held out: {hold}; "
+      f"dropped folders: {sorted(dropped) or 'none'})")
+PY
+if [ "${PREPARE_ONLY:-0}" = 1 ]; then  # the fold's data only, and the training command it would run
+    echo "train_loco: TRAIN_CT_NAMES=\"${others[*]}\" DATA=$FOLD SHARED=$SHARED" \
+        "scripts/train_context_model.sh $RUN $EPOCHS ${RESUME}"
+    exit 0
+fi
+TRAIN_CT_NAMES="${others[*]}" DATA="$FOLD" SHARED="$SHARED" \
+    exec scripts/train_context_model.sh "$RUN" "$EPOCHS" ${RESUME:+"$RESUME"}
