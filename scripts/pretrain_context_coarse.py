@@ -7,9 +7,9 @@ whole network's weights for ``scripts/train_context_model.sh``'s ``INIT``.
 
 ``--init``: weights the network starts from (the tensors whose names and shapes match; e.g. an earlier run's local
 levels); ``--schedule``: bands ``MM:DEG:STEPS`` in order (a curriculum); samples from the training sampler over the
-same sources as the training script (``--data``, the training CTs of ``--shared``). Progress is logged every 25
-steps and saved with ``--log``. Exit status 2 with the reason for a missing input; an existing ``--output`` is not
-overwritten.
+same sources as the training script (``--data``, the training CTs of ``--shared`` or those ``--cts`` names).
+Progress is logged every 25 steps and saved with ``--log``. Exit status 2 with the reason for a missing input; an
+existing ``--output`` is not overwritten.
 """
 
 from __future__ import annotations
@@ -30,6 +30,9 @@ def main() -> int:
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--data", type=Path, default=Path("data"))
     ap.add_argument("--shared", type=Path, default=Path("../shared/data"))
+    ap.add_argument("--cts", nargs="+", default=None, metavar="NAME",
+                    help="the real CTs of --shared to sample (file stems; default: the package's training CTs; "
+                         "a leave-one-CT-out fold names its five: scripts/train_loco.sh)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--log", type=Path, default=None, help="write the progress records here (JSON)")
@@ -38,7 +41,8 @@ def main() -> int:
     if args.output.exists():
         print(f"pretrain_context_coarse: {args.output} exists: choose another path", file=sys.stderr)
         return 2
-    missing = [p for p in [args.init, args.data / "train.json"] if p is not None and not p.is_file()]
+    named = [args.shared / f"{n}.nii.gz" for n in args.cts] if args.cts else []
+    missing = [p for p in [args.init, args.data / "train.json", *named] if p is not None and not p.is_file()]
     if missing:
         print(f"pretrain_context_coarse: missing {', '.join(map(str, missing))}", file=sys.stderr)
         return 2
@@ -70,7 +74,8 @@ def main() -> int:
     spacing = tuple(float(s) for s in parser["network_spacing"])
     factor = int(parser["context_factor"])
     datalists = [str(p) for p in (args.data / "train.json", args.data / "clinical" / "dataset.json") if p.is_file()]
-    cts = [str(p) for p in training_ct_paths(args.shared)]
+    cts = [str(p) for p in (named or training_ct_paths(args.shared))]
+    logging.info("real CTs: %s", ", ".join(Path(c).name for c in cts))
     sources = load_sources(datalists=datalists, cts=cts, network_spacing=spacing[0],
                            context_spacing=spacing[0] * factor, isocenter_max=float(parser["isocenter_max"]))
 

@@ -1,8 +1,10 @@
 #!/usr/bin/env bash
 # One fold of the leave-one-CT-out table (issue 32): the context network trained from scratch, with the bundle's
 # config and sampler (scripts/train_context_model.sh), on five of the six real CTs of SHARED (all but HOLD_OUT) and on
-# the simulated phantom and synthetic-anatomy pairs of DATA except those simulated from HOLD_OUT; EPOCHS epochs of
-# 400 samples (default 50: 20 000 samples), checkpointed every epoch and resumable like the main run.
+# the simulated phantom and synthetic-anatomy pairs of DATA except those simulated from HOLD_OUT, by the main run's
+# recipe: the coarse level pretrained alone (scripts/pretrain_context_coarse.py, 6 400 samples, RUN_DIR/init.pt),
+# then EPOCHS epochs of 400 samples of the full loss from those weights (default 50: 20 000 samples), checkpointed
+# every epoch and resumable like the main run (--resume: the full-loss run from its newest checkpoint).
 #   usage: [DATA=data] [SHARED=../shared/data] [LOCO_DATA=data_loco] [DEVICE=cpu|cuda] [BATCH=4] [EPOCH_LENGTH=100] \
 #          [CASES=12] [SIM_DEVICE=cpu|cuda] [SAMPLER_DEVICE=cpu|cuda] [WORKERS=1] [PREPARE_ONLY=1] \
 #          scripts/train_loco.sh HOLD_OUT [RUN_DIR] [EPOCHS] [--resume]
@@ -64,10 +66,32 @@ out.write_text(json.dumps({**base, "training": items}, indent=1))
 print(f"train_loco: {len(items)} of {len(base['training'])} simulated pairs kept (held out: {hold}; "
       f"dropped folders: {sorted(dropped) or 'none'})")
 PY
-if [ "${PREPARE_ONLY:-0}" = 1 ]; then  # the fold's data only, and the training command it would run
+INIT_WEIGHTS="$RUN/init.pt"
+if [ "${PREPARE_ONLY:-0}" = 1 ]; then  # the fold's data only, and the commands it would run
+    echo "train_loco: python scripts/pretrain_context_coarse.py --data $FOLD --shared $SHARED --cts ${others[*]}" \
+        "--output $INIT_WEIGHTS (a new fold only)"
+    init_env=""; [ -n "$RESUME" ] || init_env="INIT=$INIT_WEIGHTS "
     echo "train_loco: TRAIN_CT_NAMES=\"${others[*]}\" DATA=$FOLD SHARED=$SHARED" \
-        "scripts/train_context_model.sh $RUN $EPOCHS ${RESUME}"
+        "${init_env}scripts/train_context_model.sh $RUN $EPOCHS $RESUME"
     exit 0
 fi
+if [ -z "$RESUME" ]; then
+    if [ -e "$RUN/history.json" ] || ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev/null 2>&1; then
+        echo "train_loco: $RUN holds an earlier run: continue it with --resume" >&2; exit 2
+    fi
+    # the main run's recipe: the coarse level pretrained alone first (its match is not learned under the full loss
+    # from scratch: bundles/cbct_ct_rigid/docs/context_network.md), then the full loss from those weights
+    if [ ! -f "$FOLD/clinical/dataset.json" ]; then
+        cts=(); for name in "${others[@]}"; do cts+=("$(realpath "$SHARED/$name.nii.gz")"); done
+        OMP_NUM_THREADS=1 python scripts/make_clinical_training_data.py --output-dir "$FOLD/clinical" \
+            --cases "${CASES:-12}" --threads 1 --device "${SIM_DEVICE:-cpu}" "${cts[@]}"
+    fi
+    if [ ! -f "$INIT_WEIGHTS" ]; then
+        python scripts/pretrain_context_coarse.py --data "$FOLD" --shared "$SHARED" --cts "${others[@]}" \
+            --threads "${THREADS:-2}" --output "$INIT_WEIGHTS" --log "$RUN/pretrain_log.json"
+    fi
+    TRAIN_CT_NAMES="${others[*]}" DATA="$FOLD" SHARED="$SHARED" INIT="$INIT_WEIGHTS" \
+        exec scripts/train_context_model.sh "$RUN" "$EPOCHS"
+fi
 TRAIN_CT_NAMES="${others[*]}" DATA="$FOLD" SHARED="$SHARED" \
-    exec scripts/train_context_model.sh "$RUN" "$EPOCHS" ${RESUME:+"$RESUME"}
+    exec scripts/train_context_model.sh "$RUN" "$EPOCHS" "$RESUME"
