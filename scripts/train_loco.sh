@@ -69,7 +69,7 @@ PY
 INIT_WEIGHTS="$RUN/init.pt"
 if [ "${PREPARE_ONLY:-0}" = 1 ]; then  # the fold's data only, and the commands it would run
     echo "train_loco: python scripts/pretrain_context_coarse.py --data $FOLD --shared $SHARED --cts ${others[*]}" \
-        "--output $INIT_WEIGHTS (a new fold only)"
+        "--schedule 10:10:500 25:15:500 40:30:400 60:45:200 --output $INIT_WEIGHTS (a new fold only)"
     init_env=""; [ -n "$RESUME" ] || init_env="INIT=$INIT_WEIGHTS "
     echo "train_loco: TRAIN_CT_NAMES=\"${others[*]}\" DATA=$FOLD SHARED=$SHARED" \
         "${init_env}scripts/train_context_model.sh $RUN $EPOCHS $RESUME"
@@ -87,8 +87,10 @@ if [ -z "$RESUME" ]; then
             --cases "${CASES:-12}" --threads 1 --device "${SIM_DEVICE:-cpu}" "${cts[@]}"
     fi
     if [ ! -f "$INIT_WEIGHTS" ]; then
+        # the main run's schedule (training/context_run_v3/pretrain_log.json), 1 600 steps of batch 4
         python scripts/pretrain_context_coarse.py --data "$FOLD" --shared "$SHARED" --cts "${others[@]}" \
-            --threads "${THREADS:-2}" --output "$INIT_WEIGHTS" --log "$RUN/pretrain_log.json"
+            --schedule 10:10:500 25:15:500 40:30:400 60:45:200 --threads "${THREADS:-2}" \
+            --output "$INIT_WEIGHTS" --log "$RUN/pretrain_log.json"
     fi
     TRAIN_CT_NAMES="${others[*]}" DATA="$FOLD" SHARED="$SHARED" INIT="$INIT_WEIGHTS" \
         exec scripts/train_context_model.sh "$RUN" "$EPOCHS"
