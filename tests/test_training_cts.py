@@ -117,3 +117,14 @@ def test_the_training_script_takes_a_fold_s_ct_list_from_train_ct_names(tmp_path
                          env=env, capture_output=True, text=True, timeout=60)
     assert run.returncode == 2 and "not_a_ct.nii.gz" in run.stderr  # the list it checks is TRAIN_CT_NAMES'
     assert TRAINING_CTS[0] not in run.stderr and not (tmp_path / "run").exists()
+
+
+def test_a_loco_evaluation_refuses_an_unknown_ct_or_a_fold_without_checkpoint(tmp_path):
+    import subprocess
+
+    script = str(REPO / "scripts" / "eval_loco.sh")
+    bad = subprocess.run(["bash", script, "my_ct"], capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "HOLD_OUT must be one of" in bad.stderr
+    empty = subprocess.run(["bash", script, HELD_OUT_CTS[1], str(tmp_path / "run"), str(tmp_path / "out")],
+                           capture_output=True, text=True, timeout=60)
+    assert empty.returncode == 2 and "no checkpoint" in empty.stderr and not (tmp_path / "out").exists()
