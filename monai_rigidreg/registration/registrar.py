@@ -147,6 +147,9 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
             level has converged, one more pass on the local contrast normalised over a Gaussian of this sigma (mm)
             without the intensity channel, kept where it moves the estimate by at most
             :data:`~monai_rigidreg.registration.last_level.FINAL_NORM_MAX_MM` (``details.native_level.final_pass``).
+        lead_passes: ``(8 mm, 4 mm)`` passes of a ``ContextCorrelationNet``'s learned levels where the fine stage
+            follows (the default path and its fallback; the bundle's: ``[2, 1]``, ``docs/results.md``); ``None``: the
+            network's own (``network_def.regression.passes``, which the network alone, ``fine_stage=False``, keeps).
 
     ``lead_fallback`` (attribute, default ``True``): ``False`` records the network-led path's check without running
     its fallback (``python -m benchmarks.accuracy.bench_lead_check`` measures the check that way).
@@ -180,6 +183,7 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
         network_leads: bool = True,
         native_max_voxels: int = 1_500_000,
         native_final_norm_mm: float | None = None,
+        lead_passes: Sequence[int] | None = None,
     ) -> None:
         if network_size is None or network_spacing is None:
             shipped = NetworkGridSpec.from_bundle()
@@ -244,6 +248,9 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
             raise InputError(f"native_final_norm_mm must be > 0 mm (or None), got {native_final_norm_mm}")
         self.native_final_norm_mm = None if native_final_norm_mm is None else float(native_final_norm_mm)
         self.lead_fallback = True
+        if lead_passes is not None and (len(lead_passes) != 2 or min(int(p) for p in lead_passes) < 0):
+            raise InputError(f"lead_passes must be two pass counts >= 0 (8 mm, 4 mm), got {lead_passes}")
+        self.lead_passes = None if lead_passes is None else tuple(int(p) for p in lead_passes)
 
     @property
     def network_size(self) -> tuple[int, int, int]:
@@ -283,7 +290,8 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
         (``fine_stage=False``: the learned regression alone, also in the confidence check's swapped-input estimate,
         and no global search; ``None``: as the network is configured, e.g. by the bundle's ``fine_stage``;
         ``thorough``: the thorough path instead of the network-led one, ``None``: as ``network_leads`` says)."""
-        with self._lock, fine_stage_switch(self.network, fine_stage), self._cpu_threads() as threads:
+        with self._lock, fine_stage_switch(self.network, fine_stage), self._lead_passes(), \
+                self._cpu_threads() as threads:
             if global_init is None:
                 global_init = self.global_init and fine_stage is not False
             if fine_stage is False:  # the learned network alone sees the inputs as they are (no couch removal)
@@ -307,6 +315,20 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
         if threads is not None:
             result.details["cpu_threads"] = threads
         return result
+
+    @contextlib.contextmanager
+    def _lead_passes(self) -> Iterator[None]:
+        """The regression runs :attr:`lead_passes` while the fine stage is on (set by ``fine_stage_switch``)."""
+        regression = getattr(self.network, "regression", None)
+        on = getattr(self.network, "fine_stage", None) is not None and getattr(self.network, "fine_stage_enabled", 1)
+        if self.lead_passes is None or not on or not hasattr(regression, "passes"):
+            yield
+            return
+        before, regression.passes = regression.passes, self.lead_passes
+        try:
+            yield
+        finally:
+            regression.passes = before
 
     def _cpu_threads(self) -> contextlib.AbstractContextManager[int | None]:
         """torch's and SimpleITK's thread counts for one call (``adapt_threads``,

@@ -357,6 +357,31 @@ def test_fine_stage_switch_returns_the_regressions_own_estimate(fast_pair, tmp_p
                                atol=1e-4)
 
 
+def test_the_default_path_runs_the_bundle_s_lead_passes_and_the_network_alone_its_own(fast_pair, monkeypatch):
+    """``lead_passes`` (the bundle's ``[2, 1]``): the learned levels' passes while the fine stage follows; the learned
+    network alone (``fine_stage=False``) keeps the regression's own (``network_def.regression.passes``, ``[4, 1]``),
+    and the regression's setting is restored after every call."""
+    registrar = RigidRegistrar.from_bundle(device="cpu")
+    regression = registrar.network.regression
+    assert registrar.lead_passes == (2, 1) and regression.passes == (4, 1)
+    seen = []
+    levels = regression.forward_levels
+
+    def spy(*args, **kwargs):
+        seen.append(regression.passes)
+        return levels(*args, **kwargs)
+
+    monkeypatch.setattr(regression, "forward_levels", spy)
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    register(fixed, moving, model=registrar, resample_moving=False)
+    assert seen and set(seen) == {(2, 1)} and regression.passes == (4, 1)
+    seen.clear()
+    register(fixed, moving, model=registrar, fine_stage=False, resample_moving=False)
+    assert seen and set(seen) == {(4, 1)} and regression.passes == (4, 1)
+    with pytest.raises(InputError, match="lead_passes"):
+        RigidRegistrar(registrar.network, lead_passes=(2,))
+
+
 def test_the_network_alone_is_flagged_where_the_last_level_would_move_it_far(fast_pair, monkeypatch):
     """``fine_stage=False``: the last level runs from the learned estimate as a probe (the estimate is kept), and how
     far it would move it, ``details.signals.polish_probe_mm``, is about the estimate's error: an estimate 4 mm and
