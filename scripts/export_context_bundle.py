@@ -31,7 +31,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("checkpoint", type=Path, help="a training checkpoint (with 'network') or a model.pt state dict")
     ap.add_argument("output", type=Path, help="the bundle folder to write (replaced if it holds an earlier export)")
     ap.add_argument("--passes", type=int, nargs=2, default=[4, 1],
-                    help="inference passes of the 8 mm and 4 mm levels (the shipped bundles 0.6.0 and 0.6.1: 4 1; 0.5.0: 2 1)")
+                    help="inference passes of the 8 mm and 4 mm levels (the shipped bundles 0.6.0 and 0.6.1: 4 1, "
+                         "the network alone's; 0.5.0: 2 1)")
     ap.add_argument("--coarse-start", choices=COARSE_STARTS, default="coarse",
                     help="where the local levels start at inference (ContextCorrelationNet's coarse_start)")
     args = ap.parse_args(argv)
