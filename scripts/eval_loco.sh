@@ -16,16 +16,8 @@ HOLD=${1:-}
 RUN=${2:-training/loco/$HOLD}
 OUT=${3:-benchmarks/results/loco}
 SHARED=${SHARED:-../shared/data}
-read -r -a REAL <<< "$(python -c "from monai_rigidreg.io.shared_data import TRAINING_CTS, HELD_OUT_CTS
-print(*TRAINING_CTS, *HELD_OUT_CTS)")"
-others=()
-found=0
-for name in "${REAL[@]}"; do
-    if [ "$name" = "$HOLD" ]; then found=1; else others+=("$name"); fi
-done
-if [ "$found" != 1 ]; then
-    echo "eval_loco: HOLD_OUT must be one of: ${REAL[*]} (got '$HOLD')" >&2; exit 2
-fi
+source scripts/loco_split.sh
+loco_split eval_loco "$HOLD"
 ckpt=$(ls "$RUN"/models/checkpoint_*epoch=*.pt 2>/dev/null | sort -t= -k2 -n | tail -1 || true)
 if [ -z "$ckpt" ]; then
     echo "eval_loco: no checkpoint in $RUN/models (train the fold first: scripts/train_loco.sh $HOLD)" >&2; exit 2

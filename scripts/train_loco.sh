@@ -30,17 +30,11 @@ RESUME=${4:-}
 DATA=${DATA:-data}
 SHARED=${SHARED:-../shared/data}
 LOCO_DATA=${LOCO_DATA:-data_loco}
-read -r -a REAL <<< "$(python -c "from monai_rigidreg.io.shared_data import TRAINING_CTS, HELD_OUT_CTS
-print(*TRAINING_CTS, *HELD_OUT_CTS)")"
-others=()
-found=0
+source scripts/loco_split.sh
+loco_split train_loco "$HOLD"
 for name in "${REAL[@]}"; do
-    if [ "$name" = "$HOLD" ]; then found=1; else others+=("$name"); fi
     [ -f "$SHARED/$name.nii.gz" ] || { echo "train_loco: missing real CT $SHARED/$name.nii.gz" >&2; exit 2; }
 done
-if [ "$found" != 1 ]; then
-    echo "train_loco: HOLD_OUT must be one of: ${REAL[*]} (got '$HOLD')" >&2; exit 2
-fi
 if [ ! -f "$DATA/train.json" ]; then
     scripts/make_training_data.sh "$DATA" "$SHARED"
 fi
