@@ -70,13 +70,17 @@ TRAINED_ON_ENV = "BENCH_TRAINED_ON"
 is not the shipped network's list (a leave-one-CT-out fold of ``scripts/train_loco.sh``)."""
 
 
+def _named_in_env() -> tuple[str, ...]:
+    """The CTs :data:`TRAINED_ON_ENV` names (none where it is unset or empty)."""
+    return tuple(os.environ.get(TRAINED_ON_ENV, "").split())
+
+
 def trained_on() -> tuple[str, ...]:
-    """The real CTs the evaluated network was trained on: :data:`TRAINED_ON_ENV` where set, else
+    """The real CTs the evaluated network was trained on: :data:`TRAINED_ON_ENV`'s where set, else
     :data:`~monai_rigidreg.io.shared_data.TRAINING_CTS`."""
     from monai_rigidreg.io.shared_data import TRAINING_CTS
 
-    names = os.environ.get(TRAINED_ON_ENV, "").split()
-    return tuple(names) if names else TRAINING_CTS
+    return _named_in_env() or TRAINING_CTS
 
 
 def is_training_ct(name: str) -> bool:
@@ -88,8 +92,7 @@ def is_training_ct(name: str) -> bool:
 
 def training_mark(name: str) -> str:
     """The heading mark of a CT's section: held out of training, or a training CT."""
-    whose = "the shipped network" if not os.environ.get(TRAINED_ON_ENV, "").split() else \
-        f"the evaluated network, {TRAINED_ON_ENV}"
+    whose = f"the evaluated network, {TRAINED_ON_ENV}" if _named_in_env() else "the shipped network"
     return (f" -- TRAINING CT (used to train {whose}; not held out)" if is_training_ct(name)
             else " (held out of training)")
 

@@ -9,6 +9,7 @@
 # --resume): continues from the newest checkpoint in RUN_DIR/models (epoch, optimizer, learning-rate schedule,
 # samples seen and wall time included); without a checkpoint there it stops with exit status 2 and writes nothing.
 # A new run into a folder that holds an earlier run also stops with exit status 2 (use --resume or another folder).
+# PREPARE_DATA_ONLY=1: the same checks and the missing data, then exit 0 without training (nothing written in RUN_DIR).
 # INIT (a new run only): start the network from these weights (a model.pt or a training checkpoint) instead of from
 # scratch; INIT_PARTIAL=1 takes only the tensors whose names and shapes match (a changed design keeping trained parts).
 # One epoch = 100 iterations of batch 4 = 400 samples; 750 epochs = 300 000 samples.
@@ -85,6 +86,9 @@ fi
 if [ ! -f "$DATA/clinical/dataset.json" ]; then
     OMP_NUM_THREADS=1 python scripts/make_clinical_training_data.py --output-dir "$DATA/clinical" \
         --cases "$CASES" --threads 1 --device "$SIM_DEVICE" "${cts[@]}"
+fi
+if [ "${PREPARE_DATA_ONLY:-0}" = 1 ]; then  # the checks and the data, no training (scripts/train_loco.sh)
+    exit 0
 fi
 list() { local out="[" sep=""; for v in "$@"; do out+="$sep'$v'"; sep=","; done; echo "$out]"; }
 mkdir -p "$RUN"

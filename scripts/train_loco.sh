@@ -70,16 +70,11 @@ if [ "${PREPARE_ONLY:-0}" = 1 ]; then  # the fold's data only, and the commands 
     exit 0
 fi
 if [ -z "$RESUME" ]; then
-    if [ -e "$RUN/history.json" ] || ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev/null 2>&1; then
-        echo "train_loco: $RUN holds an earlier run: continue it with --resume" >&2; exit 2
-    fi
-    # the main run's recipe: the coarse level pretrained alone first (its match is not learned under the full loss
-    # from scratch: bundles/cbct_ct_rigid/docs/context_network.md), then the full loss from those weights
-    if [ ! -f "$FOLD/clinical/dataset.json" ]; then
-        cts=(); for name in "${others[@]}"; do cts+=("$(realpath "$SHARED/$name.nii.gz")"); done
-        OMP_NUM_THREADS=1 python scripts/make_clinical_training_data.py --output-dir "$FOLD/clinical" \
-            --cases "${CASES:-12}" --threads 1 --device "${SIM_DEVICE:-cpu}" "${cts[@]}"
-    fi
+    # the training script's checks (a folder holding a run is refused) and the fold's clinical pairs first, then the
+    # main run's recipe: the coarse level pretrained alone (its match is not learned under the full loss from
+    # scratch: bundles/cbct_ct_rigid/docs/context_network.md), then the full loss from those weights
+    TRAIN_CT_NAMES="${others[*]}" DATA="$FOLD" SHARED="$SHARED" PREPARE_DATA_ONLY=1 \
+        scripts/train_context_model.sh "$RUN" "$EPOCHS"
     if [ ! -f "$INIT_WEIGHTS" ]; then
         # the main run's schedule (training/context_run_v3/pretrain_log.json), 1 600 steps of batch 4
         python scripts/pretrain_context_coarse.py --data "$FOLD" --shared "$SHARED" --cts "${others[@]}" \

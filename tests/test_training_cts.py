@@ -128,3 +128,26 @@ def test_a_loco_evaluation_refuses_an_unknown_ct_or_a_fold_without_checkpoint(tm
     empty = subprocess.run(["bash", script, HELD_OUT_CTS[1], str(tmp_path / "run"), str(tmp_path / "out")],
                            capture_output=True, text=True, timeout=60)
     assert empty.returncode == 2 and "no checkpoint" in empty.stderr and not (tmp_path / "out").exists()
+
+
+def test_the_training_script_prepares_without_training_and_refuses_a_used_folder_first(tmp_path):
+    """``PREPARE_DATA_ONLY=1`` (what a new leave-one-CT-out fold runs before its pretraining): the training script's
+    checks and the missing data, then exit 0 with nothing in the run folder; a folder holding a run is refused."""
+    import os
+    import subprocess
+
+    data, shared = _fake_data(tmp_path)
+    (data / "clinical").mkdir()
+    (data / "clinical" / "dataset.json").write_text("{}")
+    env = {**os.environ, "TRAIN_CT_NAMES": " ".join(TRAINING_CTS), "SHARED": str(shared), "DATA": str(data),
+           "PREPARE_DATA_ONLY": "1"}
+    script = str(REPO / "scripts" / "train_context_model.sh")
+    fresh = subprocess.run(["bash", script, str(tmp_path / "run"), "1"], env=env, capture_output=True, text=True,
+                           timeout=60)
+    assert fresh.returncode == 0, fresh.stderr
+    assert not (tmp_path / "run").exists()
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "history.json").write_text("[]")
+    used = subprocess.run(["bash", script, str(tmp_path / "used"), "1"], env=env, capture_output=True, text=True,
+                          timeout=60)
+    assert used.returncode == 2 and "holds an earlier run" in used.stderr

@@ -290,7 +290,7 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
         (``fine_stage=False``: the learned regression alone, also in the confidence check's swapped-input estimate,
         and no global search; ``None``: as the network is configured, e.g. by the bundle's ``fine_stage``;
         ``thorough``: the thorough path instead of the network-led one, ``None``: as ``network_leads`` says)."""
-        with self._lock, fine_stage_switch(self.network, fine_stage), self._lead_passes(), \
+        with self._lock, fine_stage_switch(self.network, fine_stage, self.lead_passes), \
                 self._cpu_threads() as threads:
             if global_init is None:
                 global_init = self.global_init and fine_stage is not False
@@ -315,20 +315,6 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
         if threads is not None:
             result.details["cpu_threads"] = threads
         return result
-
-    @contextlib.contextmanager
-    def _lead_passes(self) -> Iterator[None]:
-        """The regression runs :attr:`lead_passes` while the fine stage is on (set by ``fine_stage_switch``)."""
-        regression = getattr(self.network, "regression", None)
-        on = getattr(self.network, "fine_stage", None) is not None and getattr(self.network, "fine_stage_enabled", 1)
-        if self.lead_passes is None or not on or not hasattr(regression, "passes"):
-            yield
-            return
-        before, regression.passes = regression.passes, self.lead_passes
-        try:
-            yield
-        finally:
-            regression.passes = before
 
     def _cpu_threads(self) -> contextlib.AbstractContextManager[int | None]:
         """torch's and SimpleITK's thread counts for one call (``adapt_threads``,
@@ -485,16 +471,23 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
 
 
 @contextlib.contextmanager
-def fine_stage_switch(network: nn.Module, enabled: bool | None) -> Iterator[None]:
+def fine_stage_switch(network: nn.Module, enabled: bool | None,
+                      lead_passes: Sequence[int] | None = None) -> Iterator[None]:
     """Run ``network`` with its fine stage on or off for the duration of the block (a
     :class:`~monai_rigidreg.networks.TwoStageRigidNet`'s ``fine_stage_enabled``; other networks, and ``enabled=None``,
-    leave it as it is), and restore the setting afterwards, whatever happens."""
-    if enabled is None or not hasattr(network, "fine_stage_enabled"):
-        yield
-        return
-    before = network.fine_stage_enabled
-    network.fine_stage_enabled = bool(enabled)
+    leave it as it is) and, where the fine stage is then on, its regression with ``lead_passes`` (its ``passes``;
+    :class:`RigidRegistrar`'s ``lead_passes``); restore both settings afterwards, whatever happens."""
+    regression = getattr(network, "regression", None)
+    before = getattr(network, "fine_stage_enabled", None), getattr(regression, "passes", None)
+    if enabled is not None and before[0] is not None:
+        network.fine_stage_enabled = bool(enabled)
+    if lead_passes is not None and before[1] is not None and getattr(network, "fine_stage", None) is not None \
+            and network.fine_stage_enabled:
+        regression.passes = tuple(lead_passes)
     try:
         yield
     finally:
-        network.fine_stage_enabled = before
+        if before[0] is not None:
+            network.fine_stage_enabled = before[0]
+        if before[1] is not None:
+            regression.passes = before[1]
