@@ -340,8 +340,8 @@ class GaussNewtonStage(nn.Module):
         support_threshold: normalized intensity above which a moving voxel counts as data.
         tolerance: ``(mm, degrees)``: at inference (gradients off) a level stops once its steps fall below both
             (:func:`gauss_newton_align`); with gradients on, every level takes its ``iterations`` steps. ``None``:
-            always all steps. The bundle uses ``(0.03, 0.03)`` (``(0.01, 0.01)`` before 0.6.1;
-            ``benchmarks/speed/bench_bundle_ab.py`` measures the time saved and the change of the estimates).
+            always all steps. The bundle uses ``(0.03, 0.03)`` (``benchmarks/speed/bench_bundle_ab.py`` measures the
+            time saved and the change of the estimates against another setting).
         secant: at inference (gradients off), secant-scaled steps (:func:`gauss_newton_align`); training keeps
             plain steps.
 

@@ -60,11 +60,11 @@ grid's points, ``details.native_level.change_mm``): a converged network estimate
 millimetre; a larger move says the network was not at the images' optimum."""
 LEAD_RANGE_MM = 60.0
 """The check fails where the estimate translates the CBCT's centre by more than this along any axis (mm): the
-shipped network's training range (motions up to 60 mm per axis). Up to bundle 0.5.x it was 30 mm, beyond which that
-network was right on only some clinical-geometry pairs; with bundle 0.6.0's network the other tests (confidence,
-polish, overlap) caught every 40-60 mm pair it got more than 5 mm wrong, on 52 clinical-geometry pairs of three CTs
-(the held-out thorax and head at two seeds, a training CT's), with the same successes and flags as at 30 mm and the
-fallback on 20 pairs instead of 30 (``docs/results.md``, "The network leads")."""
+shipped network's training range (motions up to 60 mm per axis). Beyond the range test, the other tests
+(confidence, polish, overlap) catch the network's wrong 40-60 mm estimates: on 52 clinical-geometry pairs of three
+CTs (the held-out thorax and head at two seeds, a training CT's) every pair it got more than 5 mm wrong, with the same
+successes and flags as a 30 mm range and the fallback on 20 pairs instead of 30 (``docs/results.md``, "The range test
+retuned")."""
 LEAD_RANGE_DEG = 45.0
 """Likewise for the rotation angles (degrees): the shipped network's training range on all three axes at once.
 The paper protocol's 30-degree cases stay on the led path."""
