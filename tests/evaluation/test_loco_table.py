@@ -1,0 +1,70 @@
+"""The leave-one-CT-out table reads the evaluation reports as ``scripts/eval_loco.sh`` writes them."""
+
+import json
+
+import pytest
+
+from benchmarks.accuracy.loco_table import collect, format_table, parse_clinical, parse_paper
+
+PAPER = """command: python -m benchmarks.accuracy.bench_real_ct ...
+| method | n | mean TRE (mm) | median TRE (mm) | success (<2 mm) | <12 mm | ... (per axis, time) |
+|---|---|---|---|---|---|---|---|---|---|---|---|---|---|
+| network-regression | 12 | {mean} | 0.23 | 92% | 100% | 0.11 | 0.05 | 0.07 | 0.07 | 0.08 | 0.14 | 1.41 | - |
+| identity (no registration) | 12 | 20.52 | 18.11 | 0% | 42% | 4.17 | 3.33 | 1.67 | 7.08 | 5.42 | 3.75 | - | - |
+"""
+
+CLINICAL = """| group | method | n | mean TRE (mm) | median TRE (mm) | success (<2 mm) | ... (landmarks, flags, time) |
+|---|---|---|---|---|---|---|---|---|---|---|---|
+| small | network-regression | 4 | 1.52 | 1.50 | 50% | 1.14 / 1.17 | - | - | - | 2.20 | - |
+| small | identity | 4 | 34.16 | 34.29 | 0% | 24.38 / 26.35 | - | - | - | - | - |
+| large | network-regression | 4 | 13.55 | 0.54 | 75% | 16.16 / 0.49 | - | - | - | 2.01 | - |
+| small+large | network-regression | 8 | 7.54 | 0.78 | 62% | 8.65 / 0.51 | - | - | - | 2.07 | - |
+| small+large | identity | 8 | 53.33 | 52.94 | 0% | 40.47 / 40.98 | - | - | - | - | - |
+
+Failed cases per method (rigid groups: TRE >= 2 mm; ...)
+
+network-regression: 3 of 8 failed
+  - ct_a small_002: TRE 2.13 mm (identity 26.97), confidence 0.49 flagged; isocentre 72 mm
+  - ct_a small_003: TRE 7.60 mm (identity 32.33), confidence 0.49 flagged; isocentre 55 mm
+  - ct_a large_002: TRE 52.81 mm (identity 64.78), confidence 0.49 flagged; isocentre 90 mm
+
+Run
+"""
+
+
+def test_the_paper_row_is_the_network_s_with_shares_as_fractions_and_axes_in_order():
+    p = parse_paper(PAPER.format(mean="0.25"))
+    assert p["n"] == 12 and p["mean_mm"] == 0.25 and p["median_mm"] == 0.23
+    assert p["success"] == pytest.approx(0.92)
+    assert [p[k] for k in ("tx", "ty", "tz", "rx", "ry", "rz")] == [0.11, 0.05, 0.07, 0.07, 0.08, 0.14]
+    assert parse_paper("no table here") == {}
+
+
+def test_the_clinical_counts_under_5_mm_leave_out_only_the_failures_of_5_mm_or_more_of_each_group():
+    c = parse_clinical(CLINICAL)
+    assert c["success"] == pytest.approx(0.62) and c["mean_mm"] == 7.54 and c["n"] == 8
+    assert c["small_under5"] == "3 of 4"  # 2.13 mm is a failure under 2 mm's rule, still under 5 mm
+    assert c["large_under5"] == "3 of 4"
+    # no failures listed: every pair under 5 mm
+    clean = CLINICAL.split("Failed cases")[0] + "network-regression: 0 of 8 failed\n\nRun\n"
+    assert parse_clinical(clean)["small_under5"] == "4 of 4"
+
+
+def test_the_table_takes_each_fold_s_newest_epoch_and_says_whether_the_shipped_network_saw_the_ct(tmp_path):
+    res, runs = tmp_path / "loco", tmp_path / "runs"
+    res.mkdir()
+    for tag, mean in (("e23", "0.40"), ("e50", "0.25"), ("shipped", "0.30")):
+        (res / f"bench_real_ct_loco_ct_a_{tag}_2026-12-06.txt").write_text(PAPER.format(mean=mean))
+        (res / f"bench_clinical_geometry_loco_ct_a_{tag}_2026-12-06.txt").write_text(CLINICAL)
+    (res / "bench_real_ct_loco_ct_b_e7_2026-12-05.txt").write_text(PAPER.format(mean="0.90"))
+    (res / "notes.txt").write_text("ignored")
+    (runs / "ct_a").mkdir(parents=True)
+    (runs / "ct_a" / "history.json").write_text(json.dumps([{"epoch": 50.0, "train_samples": 20000.0}]))
+    rows = collect(res, runs)
+    assert [(r.ct, r.tag) for r in rows] == [("ct_a", "e50"), ("ct_a", "shipped"), ("ct_b", "e7")]
+    assert rows[0].paper["mean_mm"] == 0.25 and rows[0].samples == 20000 and rows[2].samples is None
+    table = format_table(rows, training_cts=("ct_a",)).splitlines()
+    assert len(table) == 5 and all(line.count("|") == 11 for line in table)
+    assert "fold, epoch 50" in table[2] and "| 20000 |" in table[2] and "0.25 / 0.23" in table[2]
+    assert "shipped (trained on it" in table[3] and "0.30 / 0.23" in table[3]
+    assert "ct_b | fold, epoch 7" in table[4] and table[4].endswith("| 0.07/0.08/0.14 | - | - | - |")
