@@ -13,6 +13,7 @@ from monai_rigidreg.core.geometry import (
     Grid,
     matrix_to_params,
     parameter_errors,
+    params_to_matrix,
     params_to_sitk,
     ras_to_lps_transform,
 )
@@ -45,6 +46,27 @@ def test_ras_to_lps_transform_flips_input_and_output():
     np.testing.assert_allclose(ras_to_lps_transform(ras_to_lps_transform(m)), m)
     with pytest.raises(ValueError, match="4x4"):
         ras_to_lps_transform(np.eye(3))
+
+
+def test_the_check_s_tolerance_is_at_most_half_of_what_any_misreading_of_the_known_motion_misses_by():
+    """Every misreading of a right answer (a sign flipped per axis, two axes transposed, the inverse, RAS read as
+    LPS) misses the known motion by at least twice the tolerance, so a tool's optimizer noise up to the tolerance
+    cannot hide one."""
+    fixed, _ = known_motion_pair()
+    c = Grid.from_sitk(fixed).center()
+    right = params_to_matrix(KNOWN_MOTION, c)
+    readings = [np.linalg.inv(right), LPS_TO_RAS @ right @ LPS_TO_RAS, SWAP_XY @ right @ SWAP_XY]
+    for a in range(3):
+        flip = np.eye(4)
+        flip[a, a] = -1.0
+        readings.append(flip @ right @ flip)  # one axis reversed
+        b = (a + 1) % 3
+        swap = np.eye(4)
+        swap[[a, b]] = swap[[b, a]]
+        readings.append(swap @ right @ swap)
+    misses = [float(parameter_errors(matrix_to_params(m, c), KNOWN_MOTION).max()) for m in readings]
+    assert min(misses) >= 2 * CONVENTION_TOLERANCE[1], misses
+    assert min(misses) >= 2 * CONVENTION_TOLERANCE[0]
 
 
 def test_known_motion_pair_is_related_by_the_motion():
