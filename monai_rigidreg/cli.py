@@ -36,7 +36,8 @@ EXIT_CODES = {
 
 EXIT_CODES_HELP = ("exit status: " + "; ".join(f"{code} {text}" for code, text in EXIT_CODES.items())
                    + ". A failed run leaves no partial output (simulate keeps the finished cases of an interrupted "
-                   "run, to resume; its dataset.json appears only when the dataset is complete).")
+                   "run, to resume; its dataset.json appears only when the dataset is complete; train keeps its "
+                   "checkpoints).")
 
 # sub-command name -> its module, in the order they appear in --help
 COMMANDS = {

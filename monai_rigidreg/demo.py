@@ -34,16 +34,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="simulate a CBCT/CT pair with known motion, register it with the shipped weights, report the errors",
         description="End-to-end demonstration on a generated phantom (no data or download needed).",
     )
-    p.add_argument("--output-dir", type=Path, default=Path("demo_output"))
+    p.add_argument("--output-dir", type=Path, default=Path("demo_output"), metavar="DIR",
+                   help="where the pair, the registration and the report go (default: demo_output; refused where "
+                   "it exists and is not empty, unless --overwrite)")
     p.add_argument("--phantom", default="shepp-logan-asym",
-                   help="shepp-logan | shepp-logan-asym | random | path to a CT (default: shepp-logan-asym)")
+                   help="shepp-logan | shepp-logan-asym | random | synth (synthetic anatomy) | path to a CT (default: "
+                   "shepp-logan-asym)")
     p.add_argument("--motion", type=float, nargs=6, default=list(DEMO_MOTION), metavar=("TX", "TY", "TZ", "RX", "RY",
                    "RZ"), help="known motion, mm and degrees")
     p.add_argument("--refine", action="store_true", help="also refine with SimpleITK Mattes MI")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--bundle", type=Path, default=None)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N (default: auto)")
+    p.add_argument("--bundle", type=Path, default=None, help="MONAI bundle directory (default: the shipped one)")
+    p.add_argument("--seed", type=int, default=0, help="the simulation's random seed (default 0)")
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier demo's output folder")
     p.set_defaults(func=run)
     return p
 
@@ -121,6 +124,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"target registration error (body): {r['tre_mm']:.3f} mm   confidence: {r['confidence']:.2f}")
     print("timings (s): " + ", ".join(f"{k}={v}" for k, v in r["timings"].items()))
     print("outputs:")
+    width = max(map(len, r["paths"]), default=0)
     for k, v in r["paths"].items():
-        print(f"  {k:18s} {v}")
+        print(f"  {k:{width}s}  {v}")
     return 0

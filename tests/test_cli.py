@@ -50,6 +50,34 @@ def test_exit_codes_are_documented_in_every_help_and_the_readme(capsys):
     assert info.value.code == 2
 
 
+def test_every_option_of_every_command_says_what_it_does():
+    import argparse
+
+    from monai_rigidreg.cli import build_parser
+
+    silent = []
+
+    def walk(parser: argparse.ArgumentParser, path: list[str]) -> None:
+        for action in parser._actions:  # noqa: SLF001 - argparse keeps sub-parsers in a private list
+            if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001
+                for name, sub in action.choices.items():
+                    walk(sub, [*path, name])
+            elif action.option_strings and not action.help:
+                silent.append(f"{' '.join(path)} {action.option_strings[-1]}")
+
+    walk(build_parser(), ["monai-rigidreg"])
+    assert silent == []
+
+
+def test_the_demo_s_help_names_every_built_in_phantom(capsys):
+    from monai_rigidreg.simulation.phantoms import PHANTOMS
+
+    with pytest.raises(SystemExit):
+        main(["demo", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert all(name in text.split("--phantom", 1)[1] for name in PHANTOMS), PHANTOMS
+
+
 def test_internal_failures_are_one_line_with_exit_1_and_file_system_errors_exit_2(monkeypatch, capsys):
     import monai_rigidreg.registration.register_command as register_cli
 

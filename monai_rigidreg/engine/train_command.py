@@ -29,11 +29,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--output-dir", type=Path, default=Path("runs"), help="TensorBoard logs, history, curves.png")
     p.add_argument("--ckpt-dir", type=Path, default=None,
                    help="checkpoints and model.pt (default: <output-dir>/models)")
-    p.add_argument("--epochs", type=int, default=None)
+    p.add_argument("--epochs", type=int, default=None, help="epochs to train (default: the bundle's train.json)")
     p.add_argument("--epoch-length", type=int, default=None, help="iterations per epoch")
-    p.add_argument("--learning-rate", type=float, default=None)
+    p.add_argument("--learning-rate", type=float, default=None,
+                   help="the optimizer's learning rate (default: the bundle's train.json)")
     p.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: CUDA if available)")
-    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--seed", type=int, default=None,
+                   help="random seed of the sampling and the network's start (default: the bundle's train.json)")
     p.add_argument("--num-workers", type=int, default=None, help="DataLoader workers")
     p.add_argument("--resume", action="store_true", help="continue from the newest checkpoint in --ckpt-dir")
     p.add_argument("--init-weights", type=Path, default=None,

@@ -29,7 +29,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="instead of --fixed/--moving: a JSON list of {\"fixed\", \"moving\"} pairs (paths relative to "
                    "the file's folder) registered in one process with the network loaded once; each pair's outputs "
                    "go to OUTPUT_DIR/<case_id>; a failing pair is reported and skipped (exit status 2 at the end)")
-    p.add_argument("--output-dir", required=True, type=Path)
+    p.add_argument("--output-dir", required=True, type=Path, metavar="DIR",
+                   help="where the outputs go (refused where it exists and is not empty, unless --overwrite)")
     p.add_argument("--refine", action="store_true", help="polish with SimpleITK Mattes MI (masked to the CBCT FOV)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--threads", type=int, default=None, metavar="N",
@@ -141,14 +142,17 @@ def _run_pairs(args: argparse.Namespace) -> int:
     confidence = summary["confidence"]  # null in result.json where the check did not run
     print(json.dumps({"params": summary["params"], "confidence": None if confidence is None else round(confidence, 2),
                       "confidence_meaning": summary.get("confidence_meaning"),
-                      "flagged": summary["flagged"], "runtime_s": summary["runtime_s"],
+                      "flagged": summary["flagged"],
+                      "flag_reasons": (summary.get("details") or {}).get("flag_reasons") or [],
+                      "runtime_s": summary["runtime_s"],
                       "couch_shift_6dof": {k: round(v, 2) for k, v in couch.get("6dof", {}).items()},
                       "couch_shift_3dof": {k: round(v, 2) for k, v in couch.get("3dof", {}).items()},
                       "couch_patient_position": couch.get("patient_position"),
                       "couch_isocentre": couch.get("isocentre_source")}, indent=2))
     print("outputs:")
+    width = max(map(len, paths), default=0)
     for name, p in paths.items():
-        print(f"  {name:18s} {p}")
+        print(f"  {name:{width}s}  {p}")
     return code
 
 

@@ -62,7 +62,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     trigger.add_argument("--wait", type=float, default=None, metavar="S",
                          help="wait up to S seconds for the outcome and print it")
     example = actions.add_parser("example-config", help="print a configuration with every key")
-    example.add_argument("--storage-dir", default="/var/lib/monai-rigidreg")
+    example.add_argument("--storage-dir", default="/var/lib/monai-rigidreg", metavar="DIR",
+                         help="the storage folder the printed configuration names (default: /var/lib/monai-rigidreg)")
     for sub in (run_p, status, trigger):
         sub.add_argument("--config", type=Path, default=argparse.SUPPRESS,
                          help="the service's configuration file (JSON)")

@@ -160,7 +160,7 @@ class SimulationConfig:
         if self.phantom not in PHANTOMS:
             p = Path(self.phantom).expanduser()
             if not p.exists():
-                raise InputError(f"CT file or DICOM directory not found (built-in phantoms: {PHANTOMS})", p)
+                raise InputError(f"CT file or DICOM directory not found (built-in phantoms: {', '.join(PHANTOMS)})", p)
             self.phantom = str(p.resolve())
 
     # -- derived ----------------------------------------------------------------------------------------------

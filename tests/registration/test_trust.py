@@ -9,6 +9,7 @@ refused, none a success. The calibrated confidence: ``test_calibration.py``.
 from __future__ import annotations
 
 import json
+import logging
 
 import numpy as np
 import pytest
@@ -129,10 +130,20 @@ def test_a_cbct_field_of_view_without_tissue_is_refused(fast_pair, shipped):
 # -- swapped inputs -------------------------------------------------------------------------------------------------
 
 
-def test_swapped_inputs_are_flagged_and_exit_3_through_the_command(pair, tmp_path, capsys, with_small_network):
+def test_swapped_inputs_are_flagged_and_exit_3_through_the_command(pair, tmp_path, capsys, caplog,
+                                                                   with_small_network):
+    caplog.set_level(logging.INFO, logger="monai_rigidreg")
     base = ["register", "--fixed", pair["moving"], "--moving", pair["fixed"], "--no-qc", "--fail-on-flag"]
-    code, err = run_cli(capsys, [*base, "--output-dir", tmp_path / "a"])
-    assert code == 3, err
+    from monai_rigidreg.cli import main
+
+    code = main([str(a) for a in [*base, "--output-dir", tmp_path / "a"]])
+    printed = capsys.readouterr()
+    assert code == 3, printed.err
+    # the printed summary and the log's last word say why, not only result.json
+    summary = json.loads(printed.out.split("\noutputs:")[0])
+    assert summary["flagged"] is True and "swapped" in summary["flag_reasons"]
+    done = [r.getMessage() for r in caplog.records if r.getMessage().startswith("registered ")]
+    assert done and "FLAGGED: " in done[-1] and "swapped" in done[-1].split("FLAGGED: ")[1]
     result = json.loads((tmp_path / "a" / "result.json").read_text())
     signals = result["details"]["signals"]
     assert signals["swapped"] is True and signals["swapped_because"] == ["box"] and not signals["swap_allowed"]
@@ -148,6 +159,7 @@ def test_swapped_inputs_are_flagged_and_exit_3_through_the_command(pair, tmp_pat
     run_cli(capsys, ["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--no-qc", "--output-dir",
                      tmp_path / "c"])
     usual = json.loads((tmp_path / "c" / "result.json").read_text())
+    assert not usual["flagged"] or usual["details"]["flag_reasons"]
     assert usual["details"]["signals"]["swapped"] is False and "swapped" not in usual["details"]["flag_reasons"]
 
 
