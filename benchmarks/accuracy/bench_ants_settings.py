@@ -1,10 +1,11 @@
-"""ANTs' rigid registration on ``bench_speed``'s clinical-size pairs with and without the CBCT's field-of-view mask
-and with the ``DenseRigid`` preset: is a failure of the peer a capture-range limit or a misuse of it?
+"""ANTs' rigid registration on ``bench_speed``'s clinical-size pairs with and without the CBCT's field-of-view mask,
+with the ``DenseRigid`` preset, and started from ANTsPy's own default (the centres of intensity mass aligned) instead
+of the identity: is a failure of the peer a capture-range limit or a misuse of it?
 
-    python -m benchmarks.accuracy.bench_ants_settings --cases case_0 case_1 --threads 2
+    python -m benchmarks.accuracy.bench_ants_settings --cases case_0 case_1 case_2 case_3 --threads 2
 
 Each row: the TRE (mm, at the pair's CT body points) of :func:`~monai_rigidreg.registration.peers.register_ants`
-from the identity with one setting, and its seconds. Needs ``bench_speed``'s pairs in ``--pairs-dir`` and the
+with one setting (preset, mask, start), and its seconds. Needs ``bench_speed``'s pairs in ``--pairs-dir`` and the
 ``bench`` extra (antspyx).
 """
 
@@ -18,7 +19,9 @@ import numpy as np
 
 from benchmarks.bench_common import Tee, end_run, script_parser, start_run
 
-SETTINGS = (("Rigid", True), ("Rigid", False), ("DenseRigid", True))
+SETTINGS = (("Rigid", True, "identity"), ("Rigid", False, "identity"), ("DenseRigid", True, "identity"),
+            ("Rigid", True, "mass"), ("Rigid", False, "mass"))
+"""(preset, the CBCT's field of view as ANTs' moving mask, start: ``peers.ANTS_STARTS``)"""
 
 
 def main() -> None:
@@ -38,18 +41,19 @@ def main() -> None:
     from monai_rigidreg.registration.peers import register_ants
 
     ct = sitk.ReadImage(str(args.ct), sitk.sitkFloat32)
-    out("| case | truth (tx ty tz mm, rx ry rz deg, about the isocentre) | identity TRE | preset | mask | TRE (mm) "
-        "| s |")
-    out("|---|---|---|---|---|---|---|")
+    out("| case | truth (tx ty tz mm, rx ry rz deg, about the isocentre) | identity TRE | preset | mask | start | "
+        "TRE (mm) | s |")
+    out("|---|---|---|---|---|---|---|---|")
     for case in args.cases:
         record, cbct, points = load_case(args.pairs_dir / case)
         fov = sitk.ReadImage(str(args.pairs_dir / case / "cbct_fov.nii.gz"))
         truth = " ".join(f"{v:+.1f}" for v in record.get("params_isocenter", []))
         ident = tre_mm(np.zeros(6), np.zeros(3), record, points)
-        for preset, masked in SETTINGS:
+        for preset, masked, start in SETTINGS:
             t = time.perf_counter()
-            res = register_ants(ct, cbct, moving_mask=fov if masked else None, type_of_transform=preset)
+            res = register_ants(ct, cbct, moving_mask=fov if masked else None, type_of_transform=preset, start=start)
             out(f"| {case} | {truth} | {ident:.1f} | {preset} | {'CBCT field of view' if masked else 'none'} | "
+                f"{'centres of mass' if start == 'mass' else start} | "
                 f"{tre_mm(res.params, res.center, record, points):.2f} | {time.perf_counter() - t:.1f} |")
     end_run(out, monitor, t0, args.results, [])
 

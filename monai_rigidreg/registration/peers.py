@@ -57,7 +57,8 @@ from monai_rigidreg.core.geometry import (
 from monai_rigidreg.registration.classical import ClassicalResult
 
 __all__ = ["PEER_METHODS", "ants_available", "greedy_available", "peer_available", "register_ants",
-           "register_greedy", "register_peer", "known_motion_pair", "check_convention", "CONVENTION_TOLERANCE"]
+           "register_greedy", "register_peer", "known_motion_pair", "check_convention", "CONVENTION_TOLERANCE",
+           "ANTS_STARTS"]
 
 logger = logging.getLogger(__name__)
 
@@ -159,9 +160,14 @@ def _failed(tool: str, exc: Exception, center: np.ndarray, t0: float) -> Classic
     return ClassicalResult(np.zeros(6), center, runtime_s=time.perf_counter() - t0, stop_condition=f"failed: {last}")
 
 
+ANTS_STARTS = ("identity", "mass")
+"""Where :func:`register_ants` starts: the identity (as every method of the benchmarks) or ANTsPy's own default for
+its linear presets, the translation that aligns the two images' centres of intensity mass (``[fixed, moving, 1]``)."""
+
+
 def register_ants(fixed: sitk.Image, moving: sitk.Image, center: Sequence[float] | None = None,
                   moving_mask: sitk.Image | None = None, type_of_transform: str = "Rigid",
-                  seed: int = 1) -> ClassicalResult:
+                  seed: int = 1, start: str = "identity") -> ClassicalResult:
     """ANTs' rigid registration (``antspyx``) from the identity, with the result in the project convention.
 
     Args:
@@ -172,6 +178,7 @@ def register_ants(fixed: sitk.Image, moving: sitk.Image, center: Sequence[float]
             (``"DenseRigid"``: every voxel sampled).
         seed: ANTs' sampling seed (``ANTS_RANDOM_SEED`` for the call; not 0, which samples anew each run), so
             that a run repeats.
+        start: ``"identity"`` or ``"mass"`` (:data:`ANTS_STARTS`; the result includes the start either way).
 
     ANTs takes its thread count from ``ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS``, read once per process on its first
     registration (the benchmarks' ``--threads`` sets it before).
@@ -184,6 +191,8 @@ def register_ants(fixed: sitk.Image, moving: sitk.Image, center: Sequence[float]
     Raises:
         ImportError: ``antspyx`` is not installed.
     """
+    if start not in ANTS_STARTS:
+        raise ValueError(f"start must be one of {ANTS_STARTS}, got {start!r}")
     if not ants_available():
         raise _missing("ants")
     t0 = time.perf_counter()
@@ -195,7 +204,8 @@ def register_ants(fixed: sitk.Image, moving: sitk.Image, center: Sequence[float]
     masks = {} if moving_mask is None else {"moving_mask": ants.from_sitk(sitk.Cast(moving_mask, sitk.sitkFloat32))}
     with tempfile.TemporaryDirectory(prefix="rigidreg_ants_") as tmp, _environ(ANTS_RANDOM_SEED=str(int(seed))):
         try:
-            out = ants.registration(f, m, type_of_transform=type_of_transform, initial_transform="Identity",
+            out = ants.registration(f, m, type_of_transform=type_of_transform,
+                                    initial_transform="Identity" if start == "identity" else None,
                                     outprefix=str(Path(tmp) / "ants_"), **masks)
             files = [p for p in out["fwdtransforms"] if p.endswith("GenericAffine.mat")]
             if len(out["fwdtransforms"]) != 1 or not files:

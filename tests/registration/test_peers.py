@@ -25,6 +25,7 @@ from monai_rigidreg.registration.peers import (
     check_convention,
     greedy_available,
     known_motion_pair,
+    register_ants,
 )
 
 NO_ANTS = "antspyx is not installed (the 'bench' extra; kept out of 'test': it pins numpy<2.4 and scipy<1.16)"
@@ -124,6 +125,20 @@ def test_ants_convention_on_a_known_motion():
     assert _misses(LPS_TO_RAS @ a @ LPS_TO_RAS, c) > 3.0  # LPS read as RAS
     assert _misses(np.linalg.inv(a), c) > 3.0  # moving -> fixed
     assert _misses(SWAP_XY @ a @ SWAP_XY, c) > 3.0  # x and y transposed
+
+
+def test_ants_starts_are_checked_before_anything_runs():
+    fixed, moving = known_motion_pair()
+    with pytest.raises(ValueError, match="start must be one of"):
+        register_ants(fixed, moving, start="centre")
+
+
+@pytest.mark.skipif(not ants_available(), reason=NO_ANTS)
+def test_ants_from_its_own_centre_of_mass_start_reports_the_whole_transform():
+    """Started from ANTsPy's default (the centres of mass aligned), the one transform file holds the start too: the
+    known motion is recovered, not the motion less the start's translation."""
+    check = check_convention("ants", start="mass")
+    assert check["ok"], check["errors"]
 
 
 @pytest.mark.skipif(not greedy_available(), reason=NO_GREEDY)
