@@ -44,5 +44,5 @@ if [ "${SHIPPED:-0}" = 1 ]; then
         --output-dir bench_out/clinical --threads 1 --methods network-regression \
         --results "$OUT/bench_clinical_geometry_loco_${HOLD}_shipped_${day}.txt"
 fi
-python -m benchmarks.accuracy.loco_table --results-dir "$OUT"
+python -m benchmarks.accuracy.loco_table --results-dir "$OUT" --runs-dir "$(dirname "$RUN")"
 echo "eval_loco: results in $OUT (fold $HOLD, epoch $epoch)"

@@ -55,6 +55,7 @@ def main() -> None:
             out(f"| {case} | {truth} | {ident:.1f} | {preset} | {'CBCT field of view' if masked else 'none'} | "
                 f"{'centres of mass' if start == 'mass' else start} | "
                 f"{tre_mm(res.params, res.center, record, points):.2f} | {time.perf_counter() - t:.1f} |")
+    out()
     end_run(out, monitor, t0, args.results, [])
 
 

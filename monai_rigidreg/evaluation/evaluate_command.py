@@ -27,8 +27,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--datalist", required=True, type=Path, help="MONAI datalist JSON with ground truth")
     p.add_argument("--method", nargs="+", default=["network"], choices=METHODS, help="method(s) to run")
     p.add_argument("--output-dir", required=True, type=Path, metavar="DIR",
-                   help="where cases.csv, summary.json and the reports go (refused where it holds a report, unless "
-                   "--overwrite)")
+                   help="where cases.csv, summary.json and the reports go (refused where it is not empty; --overwrite "
+                   "replaces an earlier report only)")
     p.add_argument("--bundle", type=Path, default=None, help="bundle directory (default: the shipped one)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--max-cases", type=int, default=None, metavar="N", help="only the datalist's first N cases")

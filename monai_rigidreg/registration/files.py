@@ -120,7 +120,8 @@ def register_files(
     if refs is None and reg == "auto" and not reg_warning:
         logger.info("%s", NO_REG_FOR_FILES)
     reasons = (result.details or {}).get("flag_reasons") or []
-    flag = f"; FLAGGED: {', '.join(reasons) or 'likely failure'}, check the QC figure" if result.flagged else ""
+    look = ", check the QC figure" if qc else ", check the registered image"
+    flag = f"; FLAGGED: {', '.join(reasons) or 'likely failure'}{look}" if result.flagged else ""
     logger.info("registered %s to %s: %s (confidence %s%s)", moving, fixed,
                 ", ".join(f"{n}={v:.2f}" for n, v in zip(PARAM_NAMES, result.params)),
                 "not assessed" if result.confidence is None else f"{result.confidence:.2f}", flag)
