@@ -14,6 +14,7 @@ import math
 import time
 from pathlib import Path
 
+from monai_rigidreg.core.command_text import outputs_listing
 from monai_rigidreg.core.errors import InputError
 
 __all__ = ["add_parser", "run", "run_demo", "DEMO_MOTION", "DEMO_SIMULATION"]
@@ -123,8 +124,5 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {k:4s}  {r['true'][k]:8.3f}  {r['pred'][k]:9.3f}  {r['abs_error'][k]:7.3f}")
     print(f"target registration error (body): {r['tre_mm']:.3f} mm   confidence: {r['confidence']:.2f}")
     print("timings (s): " + ", ".join(f"{k}={v}" for k, v in r["timings"].items()))
-    print("outputs:")
-    width = max(map(len, r["paths"]), default=0)
-    for k, v in r["paths"].items():
-        print(f"  {k:{width}s}  {v}")
+    print(outputs_listing(r["paths"]))
     return 0

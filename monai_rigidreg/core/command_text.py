@@ -3,16 +3,17 @@
 A command module's docstring starts ``"``monai-rigidreg NAME``: one-line summary."``; the paragraphs after it, up to
 the first literal block (a paragraph ending ``::``), describe the command. :func:`add_command` makes the summary the
 command's ``help`` (the line of ``monai-rigidreg --help``) and the description its ``--help`` text, without reST's
-double back-quotes. Imports nothing beyond ``argparse`` (``monai-rigidreg --help`` builds every parser).
+double back-quotes. :func:`outputs_listing` is the list of written files a command prints at its end. Imports nothing
+beyond ``argparse`` (``monai-rigidreg --help`` builds every parser).
 """
 
 from __future__ import annotations
 
 import argparse
 import re
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
-__all__ = ["command_help", "add_command"]
+__all__ = ["command_help", "add_command", "outputs_listing"]
 
 
 def command_help(doc: str) -> tuple[str, str]:
@@ -48,3 +49,15 @@ def add_command(subparsers: argparse._SubParsersAction, name: str, doc: str | No
     p = subparsers.add_parser(name, help=summary, description=description or None, epilog=epilog)
     p.set_defaults(func=run)
     return p
+
+
+def outputs_listing(paths: Mapping[str, object]) -> str:
+    """``outputs:`` and one line per written file, its name aligned before its path (``register``, ``demo``).
+
+    >>> print(outputs_listing({"a.txt": "out/a.txt", "result.json": "out/result.json"}))
+    outputs:
+      a.txt        out/a.txt
+      result.json  out/result.json
+    """
+    width = max(map(len, paths), default=0)
+    return "\n".join(["outputs:", *(f"  {name:{width}s}  {path}" for name, path in paths.items())])

@@ -15,7 +15,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from monai_rigidreg.core.command_text import add_command
+from monai_rigidreg.core.command_text import add_command, outputs_listing
 
 __all__ = ["add_parser", "run"]
 
@@ -149,10 +149,7 @@ def _run_pairs(args: argparse.Namespace) -> int:
                       "couch_shift_3dof": {k: round(v, 2) for k, v in couch.get("3dof", {}).items()},
                       "couch_patient_position": couch.get("patient_position"),
                       "couch_isocentre": couch.get("isocentre_source")}, indent=2))
-    print("outputs:")
-    width = max(map(len, paths), default=0)
-    for name, p in paths.items():
-        print(f"  {name:{width}s}  {p}")
+    print(outputs_listing(paths))
     return code
 
 
