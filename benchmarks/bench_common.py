@@ -159,6 +159,36 @@ def start_registrar_run(ap: argparse.ArgumentParser, module: str) -> tuple[Any, 
     return args, out, monitor, t0, monai_rigidreg.RigidRegistrar.from_bundle(device="cpu")
 
 
+PEER_MASKS = {"tool": None, "fov": True, "none": False}
+"""What the peer tools (``ants``, ``greedy``) get as their moving-image mask in a benchmark (``--peer-mask``): each
+tool's default (``tool``: :data:`~monai_rigidreg.registration.peers.PEER_FOV_MASK`), the CBCT's reconstructed field
+of view (``fov``) or nothing (``none``, as elastix's default rigid map runs in ``evaluate`` and ``bench_real_ct``)."""
+
+
+def add_peer_mask_option(ap: argparse.ArgumentParser) -> None:
+    """``--peer-mask {tool,fov,none}`` (:data:`PEER_MASKS`) on a benchmark that runs the peer tools; read it with
+    :func:`peer_mask`."""
+    ap.add_argument("--peer-mask", choices=tuple(PEER_MASKS), default="tool",
+                    help="the peer tools' (ants, greedy) moving-image mask: each tool's default (tool, the default), "
+                         "the CBCT's field of view (fov) or none")
+
+
+def peer_mask(args: argparse.Namespace) -> bool | None:
+    """``use_mask`` of :func:`~monai_rigidreg.registration.peers.register_peer` for ``--peer-mask``."""
+    return PEER_MASKS[args.peer_mask]
+
+
+def peer_mask_line(args: argparse.Namespace, methods: list[str], out: Tee) -> None:
+    """One line saying what each peer tool of ``methods`` gets as its moving-image mask (``--peer-mask``)."""
+    from monai_rigidreg.registration.peers import PEER_FOV_MASK, PEER_METHODS
+
+    use = peer_mask(args)
+    said = [f"{m} {'the CBCT field of view' if (PEER_FOV_MASK[m] if use is None else use) else 'none'}"
+            for m in methods if m in PEER_METHODS]
+    if said:
+        out(f"peer tools' moving-image mask (--peer-mask {args.peer_mask}): {', '.join(said)}")
+
+
 def checked_peers(methods: list[str], out: Tee) -> list[str]:
     """``methods`` less the peer tools (``ants``, ``greedy``) that are not installed or fail their convention check
     (:func:`monai_rigidreg.registration.peers.check_convention`: the known motion of a small pair recovered through

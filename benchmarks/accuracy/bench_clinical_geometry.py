@@ -87,12 +87,15 @@ import numpy as np
 from benchmarks.bench_common import (
     Tee,
     add_final_norm_option,
+    add_peer_mask_option,
     apply_final_norm_option,
     checked_peers,
     ct_name,
     end_run,
     find_cts,
     is_training_ct,
+    peer_mask,
+    peer_mask_line,
     script_parser,
     set_threads,
     signed,
@@ -192,8 +195,10 @@ def roi_mask_on(image: Any, box: tuple[float, ...]) -> Any:
 # ---------------------------------------------------------------------------------------------------------------
 # Registration
 # ---------------------------------------------------------------------------------------------------------------
-def run_method(method: str, ct: Any, case: Any, registrar: Any, roi_supported: bool) -> dict[str, Any] | None:
-    """Register one case with one method; ``None`` when the method does not apply to the case."""
+def run_method(method: str, ct: Any, case: Any, registrar: Any, roi_supported: bool,
+               peer_mask: bool | None = None) -> dict[str, Any] | None:
+    """Register one case with one method; ``None`` when the method does not apply to the case. ``peer_mask``: the
+    peer tools' ``use_mask`` (``--peer-mask``)."""
     import monai_rigidreg
     from monai_rigidreg.registration.classical import register_elastix, register_sitk
 
@@ -228,7 +233,8 @@ def run_method(method: str, ct: Any, case: Any, registrar: Any, roi_supported: b
     elif method in ("ants", "greedy"):
         from monai_rigidreg.registration.peers import register_peer
 
-        params = np.asarray(register_peer(method, ct.image, case.cbct, center=c, moving_mask=case.fov).params)
+        params = np.asarray(register_peer(method, ct.image, case.cbct, center=c, moving_mask=case.fov,
+                                          use_mask=peer_mask).params)
     else:
         raise ValueError(method)
     out["time_s"] = time.perf_counter() - t0
@@ -531,6 +537,7 @@ def main() -> int:
     ap.add_argument("--native-max-voxels", type=int, default=None,
                     help="the last level's grid at most this many voxels (default: the bundle's / the registrar's)")
     add_final_norm_option(ap)
+    add_peer_mask_option(ap)
     ap.add_argument("--no-native-level", action="store_true",
                     help="the network without its last level at native resolution (RigidRegistrar native_level)")
     ap.add_argument("--no-global-init", action="store_true",
@@ -563,6 +570,7 @@ def main() -> int:
     bundle = str(args.bundle or "the shipped bundle")
     monitor, t_start = start_run(out, __spec__.name, args.threads, args.device, bundle)
     methods = checked_peers(methods, out)
+    peer_mask_line(args, methods, out)
     spec = ClinicalCBCTSpec()
     out(f"methods: {' '.join(methods) or '(none: --simulate-only)'}; {args.cases_per_group} cases per group and CT, "
         f"seed {args.seed}; network roi= on deformed pairs: "
@@ -618,7 +626,7 @@ def main() -> int:
                 row["results"]["identity"] = case_errors(np.zeros(6), rec, points)
                 ts = time.perf_counter()
                 for m in methods:
-                    res = run_method(m, ct, case, registrar, roi_supported)
+                    res = run_method(m, ct, case, registrar, roi_supported, peer_mask(args))
                     if res is not None:
                         res.update(case_errors(res["params"], rec, points))
                         row["results"][m] = res

@@ -49,12 +49,15 @@ import numpy as np
 from benchmarks.bench_common import (
     Tee,
     add_final_norm_option,
+    add_peer_mask_option,
     apply_final_norm_option,
     checked_peers,
     ct_name,
     end_run,
     find_cts,
     is_training_ct,
+    peer_mask,
+    peer_mask_line,
     script_parser,
     set_threads,
     signed,
@@ -234,6 +237,7 @@ def main() -> int:
     ap.add_argument("--subcell", choices=("softargmax", "parabola"), default=None,
                     help="how a CorrelationRigidNet's fine level reads its matches (default: the bundle's)")
     add_final_norm_option(ap)
+    add_peer_mask_option(ap)
     ap.add_argument("--results", type=Path, default=None, help="also write the printed text to FILE")
     args = ap.parse_args()
     if args.num_cases < 1 or args.threads < 1:
@@ -266,6 +270,7 @@ def main() -> int:
                  if args.native_final_norm_mm is not None else ""))
     monitor, t_start = start_run(out, __spec__.name, args.threads, args.device, bundle)
     methods = checked_peers(methods, out)  # ANTs reads ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS (set_threads) here
+    peer_mask_line(args, methods, out)
     out(f"methods: {' '.join(methods)}; {args.num_cases} {args.protocol}-protocol cases per CT, seed {args.seed}; "
         f"simulation settings: {' '.join(sim_settings(args.cbct))}")
     out()
@@ -308,7 +313,8 @@ def main() -> int:
         info = {it["case_id"]: it for it in items}
         t0 = time.perf_counter()
         res = evaluate_datalist(dl, methods, args.output_dir / "eval" / name, registrar=registrar, device=args.device,
-                                progress=False, max_overlays=0, overwrite=True)  # this script's own report folder
+                                progress=False, max_overlays=0, overwrite=True,  # this script's own report folder
+                                peer_mask=peer_mask(args))
         t_eval = time.perf_counter() - t0
         ident = identity_tre(items)
         rows = []

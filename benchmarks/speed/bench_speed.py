@@ -17,9 +17,10 @@ Printed, each with the command or call it times:
    CBCT);
 3. **in-process**: the registrar loaded once, volumes in memory, the default path with its confidence check
    (``monai_rigidreg.register``), median seconds per case and per stage, TRE and success (< 2 mm) next to
-   ``register_elastix`` on the same cases (and each baseline of ``--methods``: ``sitk``, ``ants``, ``greedy``, with
-   the CBCT's field of view as their moving mask; a peer tool counts only after its convention check passes), with
-   elastix's time over each method's;
+   ``register_elastix`` with the CBCT's field of view as its moving mask on the same cases (and each baseline of
+   ``--methods``: ``elastix-nomask``, elastix's default rigid map without a mask; ``sitk`` with the mask; the peer
+   tools ``ants`` and ``greedy`` with the mask ``--peer-mask`` gives them; a peer tool counts only after its
+   convention check passes), with elastix's time over each method's;
 4. **under load**: the in-process median beside one single-threaded busy loop, and beside a second process doing
    the same registrations, as ratios to the quiet median;
 5. **batch**: ``monai-rigidreg register --datalist`` over all pairs in one process (model loaded once): wall time
@@ -59,7 +60,15 @@ import numpy as np
 import SimpleITK as sitk
 
 import monai_rigidreg  # first: its thread policy applies before torch loads
-from benchmarks.bench_common import Tee, checked_peers, find_cts, script_parser
+from benchmarks.bench_common import (
+    Tee,
+    add_peer_mask_option,
+    checked_peers,
+    find_cts,
+    peer_mask,
+    peer_mask_line,
+    script_parser,
+)
 
 CT_NAME = "thorax_4dct_phase00_itkelastix"
 ELASTIX_COMMAND = """
@@ -156,13 +165,29 @@ def stage_medians(rows: list[dict]) -> str:
 
 
 BASELINES = {"elastix": "elastix (default rigid map, CBCT FOV mask)",
+             "elastix-nomask": "elastix (default rigid map, no mask)",
              "sitk": "SimpleITK (Mattes MI, CBCT FOV mask)",
-             "ants": "ANTs (antspyx, Rigid preset, CBCT FOV mask)",
-             "greedy": "greedy (picsl-greedy, -a -dof 6, NMI, CBCT FOV mask)"}
+             "ants": "ANTs (antspyx, Rigid preset)",
+             "greedy": "greedy (picsl-greedy, -a -dof 6, NMI)"}
+"""The in-process baselines; the peer tools' (``ants``, ``greedy``) mask is ``--peer-mask``'s
+(:func:`baseline_label`)."""
 
 
-def baseline_rows(ct: sitk.Image, cases: list[Path], method: str = "elastix") -> list[dict]:
-    """A baseline of :data:`BASELINES` on every case: seconds and TRE."""
+def baseline_label(method: str, use_mask: bool | None = None) -> str:
+    """:data:`BASELINES`' label of ``method``, a peer tool's with the mask it got (``use_mask`` as
+    :func:`~monai_rigidreg.registration.peers.register_peer`'s)."""
+    from monai_rigidreg.registration.peers import PEER_FOV_MASK, PEER_METHODS
+
+    if method not in PEER_METHODS:
+        return BASELINES[method]
+    masked = PEER_FOV_MASK[method] if use_mask is None else use_mask
+    return BASELINES[method][:-1] + (", CBCT FOV mask)" if masked else ", no mask)")
+
+
+def baseline_rows(ct: sitk.Image, cases: list[Path], method: str = "elastix",
+                  use_mask: bool | None = None) -> list[dict]:
+    """A baseline of :data:`BASELINES` on every case: seconds and TRE (``use_mask``: the peer tools', as
+    :func:`~monai_rigidreg.registration.peers.register_peer`'s)."""
     from monai_rigidreg.registration.classical import register_elastix, register_sitk
     from monai_rigidreg.registration.peers import register_peer
 
@@ -173,10 +198,12 @@ def baseline_rows(ct: sitk.Image, cases: list[Path], method: str = "elastix") ->
         t = time.perf_counter()
         if method == "elastix":
             res = register_elastix(ct, cbct, moving_mask=fov)
+        elif method == "elastix-nomask":
+            res = register_elastix(ct, cbct)
         elif method == "sitk":
             res = register_sitk(ct, cbct, moving_mask=fov)
         else:
-            res = register_peer(method, ct, cbct, moving_mask=fov)
+            res = register_peer(method, ct, cbct, moving_mask=fov, use_mask=use_mask)
         dt = time.perf_counter() - t
         rows.append({"case": case_dir.name, "time_s": dt, "tre": tre_mm(res.params, res.center, record, points)})
     return rows
@@ -217,8 +244,9 @@ def main() -> None:
     ap.add_argument("--skip", nargs="*", default=[], choices=["startup", "cli", "load", "batch"])
     ap.add_argument("--methods", nargs="+", default=["elastix"], choices=list(BASELINES),
                     help="baselines of the in-process section beside the default path (default elastix; also sitk "
-                         "and the peer tools ants and greedy, the 'bench' extra); elastix is always run, the ratios' "
-                         "reference")
+                         "elastix-nomask, elastix without the CBCT's field of view as its mask, and the peer tools "
+                         "ants and greedy, the 'bench' extra); elastix is always run, the ratios' reference")
+    add_peer_mask_option(ap)
     ap.add_argument("--results", type=Path, default=None)
     ap.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -314,7 +342,8 @@ def main() -> None:
         shipped, registrar.native_final_norm_mm = registrar.native_final_norm_mm, float(args.final_norm_mm)
         final_norm = in_process(registrar, ct, cases)
         registrar.native_final_norm_mm = shipped
-    rows_of = {m: baseline_rows(ct, cases, m) for m in baselines}
+    peer_mask_line(args, baselines, out)
+    rows_of = {m: baseline_rows(ct, cases, m, peer_mask(args)) for m in baselines}
     t_elx = float(np.median([r["time_s"] for r in rows_of["elastix"]]))
     out("| method | n | median s / case | mean TRE (mm) | median TRE (mm) | success (<2 mm) | speed-up |")
     out("|---|---|---|---|---|---|---|")
@@ -324,7 +353,10 @@ def main() -> None:
     if final_norm is not None:
         summarize(out, f"monai-rigidreg (final pass at {args.final_norm_mm:g} mm)", final_norm, t_elx)
     for m in baselines:
-        summarize(out, BASELINES[m], rows_of[m], None if m == "elastix" else t_elx)
+        summarize(out, baseline_label(m, peer_mask(args)), rows_of[m], None if m == "elastix" else t_elx)
+    if "elastix-nomask" in rows_of:
+        t_nomask = float(np.median([r["time_s"] for r in rows_of["elastix-nomask"]]))
+        out(f"\nthe default path against elastix without the mask (issue 33's reference): {t_nomask / t_ours:.2f}x")
     out("\nmedian seconds per stage (0 where a stage did not run): " + stage_medians(ours))
     out(f"flagged: {sum(r['flagged'] for r in ours)} of {len(ours)}; network-led path's fallback ran on "
         f"{sum(r['fallback'] for r in ours)} of {len(ours)}")

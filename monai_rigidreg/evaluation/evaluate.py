@@ -198,6 +198,7 @@ def evaluate_datalist(
     html: bool = True,
     max_overlays: int = DEFAULT_MAX_OVERLAYS,
     overwrite: bool = False,
+    peer_mask: bool | None = None,
 ) -> dict[str, Any]:
     """Register every case with every method and report.
 
@@ -218,6 +219,8 @@ def evaluate_datalist(
             files is refused). The report is written aside and moved into place at the end
             (:func:`~monai_rigidreg.io.staging.staged_output_dir`): a failed or interrupted run leaves ``output_dir``
             as it was.
+        peer_mask: whether the peer tools (``ants``, ``greedy``) get the CBCT's field of view as their moving mask
+            (``None``: each tool's :data:`~monai_rigidreg.registration.peers.PEER_FOV_MASK`).
 
     Returns:
         ``{"summary": ..., "report": markdown text, "cases": [CaseResult, ...], "paths": {...}}``.
@@ -231,10 +234,10 @@ def evaluate_datalist(
     if any(m.startswith("network") for m in methods) and registrar is None:
         registrar = RigidRegistrar.from_bundle(bundle, device=device)
     if output_dir is None:
-        return _evaluate_into(None, items, methods, registrar, progress, html, max_overlays, datalist)
+        return _evaluate_into(None, items, methods, registrar, progress, html, max_overlays, datalist, peer_mask)
     out = Path(output_dir)
     with staged_output_dir(out, overwrite, replaceable=REPORT_FILES) as tmp:
-        result = _evaluate_into(tmp, items, methods, registrar, progress, html, max_overlays, datalist)
+        result = _evaluate_into(tmp, items, methods, registrar, progress, html, max_overlays, datalist, peer_mask)
     result["paths"] = {k: out / Path(v).relative_to(tmp) for k, v in result["paths"].items()}
     return result
 
@@ -284,12 +287,13 @@ REPORT_FILES = ("cases.csv", "summary.json", "report.md", "report.html", OVERLAY
 
 
 def _evaluate_into(output_dir: Path | None, items: list[dict[str, Any]], methods: Sequence[str], registrar: Any,
-                   progress: bool, html: bool, max_overlays: int, datalist: str | Path) -> dict[str, Any]:
+                   progress: bool, html: bool, max_overlays: int, datalist: str | Path,
+                   peer_mask: bool | None = None) -> dict[str, Any]:
     """The evaluation loop of :func:`evaluate_datalist`, its report written into ``output_dir`` (``None``:
     nowhere)."""
     gallery = (OverlayGallery(Path(output_dir) / OVERLAY_DIR, methods, max_others=max_overlays)
                if html and output_dir is not None else None)
-    cases = register_cases(items, methods, registrar, progress, gallery)
+    cases = register_cases(items, methods, registrar, progress, gallery, peer_mask=peer_mask)
     if gallery is not None:
         gallery.finish()
     return report_cases(cases, output_dir, datalist, gallery.images if gallery else None,
@@ -298,14 +302,14 @@ def _evaluate_into(output_dir: Path | None, items: list[dict[str, Any]], methods
 
 def register_cases(items: Sequence[dict[str, Any]], methods: Sequence[str], registrar: Any, progress: bool = False,
                    gallery: OverlayGallery | None = None, first_index: int = 0,
-                   index_of: Sequence[int] | None = None) -> list[CaseResult]:
+                   index_of: Sequence[int] | None = None, peer_mask: bool | None = None) -> list[CaseResult]:
     """Every item registered by every method, in that order (one :class:`CaseResult` per item and method), the
     overlays drawn into ``gallery`` while each case is loaded. A failed or interrupted run discards the gallery's
     images and raises.
 
     ``index_of``: each item's position in the whole evaluation (default ``first_index``, ``first_index + 1``...):
     a result's index, the key of its overlay, is ``position * len(methods) + method``, as in the merged list of a
-    distributed evaluation.
+    distributed evaluation. ``peer_mask``: as in :func:`evaluate_datalist`.
     """
     positions = list(index_of) if index_of is not None else [first_index + k for k in range(len(items))]
     cases: list[CaseResult] = []
@@ -314,7 +318,8 @@ def register_cases(items: Sequence[dict[str, Any]], methods: Sequence[str], regi
                                       unit="case")):
             first = len(cases)
             for method in methods:
-                pred, runtime, extra = _run_method(method, case.fixed, case.moving, case.fov, case.center, registrar)
+                pred, runtime, extra = _run_method(method, case.fixed, case.moving, case.fov, case.center, registrar,
+                                                   peer_mask)
                 tre = float(target_registration_error(pred, case.truth, case.points, center=case.center))
                 cases.append(CaseResult(case.case_id, method, case.truth.tolist(), np.asarray(pred).tolist(), tre,
                                         runtime, str(case.item.get("group", "")), extra))
@@ -343,7 +348,7 @@ def report_cases(cases: list[CaseResult], output_dir: Path | None, datalist: str
 
 
 def _run_method(method: str, fixed: sitk.Image, moving: sitk.Image, fov: sitk.Image | None, center: np.ndarray,
-                registrar: Any) -> tuple[np.ndarray, float, dict[str, Any]]:
+                registrar: Any, peer_mask: bool | None = None) -> tuple[np.ndarray, float, dict[str, Any]]:
     t0 = time.perf_counter()
     if method.startswith("network"):
         res = registrar(fixed, moving, refine=method == "network+refine", resample_moving=False, moving_fov=fov,
@@ -358,7 +363,7 @@ def _run_method(method: str, fixed: sitk.Image, moving: sitk.Image, fov: sitk.Im
     if method == "sitk":
         res = register_sitk(fixed, moving, center=center, moving_mask=fov)
     elif method in PEER_METHODS:
-        res = register_peer(method, fixed, moving, center=center, moving_mask=fov)
+        res = register_peer(method, fixed, moving, center=center, moving_mask=fov, use_mask=peer_mask)
     else:
         res = register_elastix(fixed, moving, center=center)  # elastix's default rigid map, as specified
     return res.params, time.perf_counter() - t0, {"stop": res.stop_condition}

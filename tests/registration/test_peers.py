@@ -192,3 +192,43 @@ def test_evaluate_refuses_a_peer_method_whose_tool_is_missing(tiny_dataset, monk
     for method, dist in (("ants", "antspyx"), ("greedy", "picsl-greedy")):
         with pytest.raises(InputError, match=rf"{dist}.*monai-rigidreg\[bench\]"):
             evaluate.evaluate_datalist(tiny_dataset, [method], None, progress=False)
+
+
+def test_register_peer_gives_the_field_of_view_only_where_the_mask_is_asked_for(monkeypatch):
+    import monai_rigidreg.registration.peers as peers
+
+    got = []
+    for name in ("register_ants", "register_greedy"):
+        monkeypatch.setattr(peers, name, lambda f, m, c=None, mask=None, _n=name: got.append((_n, mask)) or _n)
+    fixed, moving = known_motion_pair(size=8, spacing=24.0)
+    fov = sitk.Image(moving.GetSize(), sitk.sitkUInt8)
+    for method, use, expect in (("ants", None, fov), ("greedy", True, fov), ("ants", False, None),
+                                ("greedy", False, None)):
+        got.clear()
+        assert peers.register_peer(method, fixed, moving, moving_mask=fov, use_mask=use) == f"register_{method}"
+        assert got == [(f"register_{method}", expect)]
+    monkeypatch.setitem(peers.PEER_FOV_MASK, "ants", False)  # the tool's own default decides where use_mask is None
+    got.clear()
+    peers.register_peer("ants", fixed, moving, moving_mask=fov)
+    assert got == [("register_ants", None)]
+    with pytest.raises(ValueError, match="unknown peer method"):
+        peers.register_peer("elastix", fixed, moving)
+
+
+def test_evaluate_passes_the_peer_mask_choice_to_the_tool(tiny_dataset, monkeypatch):
+    import monai_rigidreg.evaluation.evaluate as evaluate
+    import monai_rigidreg.registration.peers as peers
+    from monai_rigidreg.registration.classical import ClassicalResult
+
+    masks = []
+
+    def fake_greedy(fixed, moving, center=None, mask=None):
+        masks.append(mask is not None)
+        return ClassicalResult(np.zeros(6), np.asarray(center), runtime_s=0.0, stop_condition="fake")
+
+    monkeypatch.setattr(peers, "register_greedy", fake_greedy)
+    monkeypatch.setattr(evaluate, "peer_available", lambda method: True)
+    for choice, expect in ((None, True), (True, True), (False, False)):
+        masks.clear()
+        evaluate.evaluate_datalist(tiny_dataset, ["greedy"], None, progress=False, max_cases=2, peer_mask=choice)
+        assert masks == [expect, expect]
