@@ -39,7 +39,7 @@ Each pair is registered by every method in the same run, with the volumes in mem
 * ``elastix-roi`` (optional): ``register_elastix`` with the CT samples restricted to the target box (deformed pairs
   only; elastix as a physicist would use it for a target-region match);
 * ``ants``, ``greedy`` (optional, the ``bench`` extra): the peer tools, ``monai_rigidreg.registration.peers``
-  (``moving_mask=fov``), each counted only after its convention check passes.
+  (``moving_mask=fov``, or none with ``--peer-mask none``), each counted only after its convention check passes.
 
 Errors:
 

@@ -49,12 +49,14 @@ def evaluate_distributed(
     html: bool = True,
     max_overlays: int = DEFAULT_MAX_OVERLAYS,
     overwrite: bool = False,
+    peer_mask: bool | None = None,
 ) -> dict[str, Any]:
     """:func:`~monai_rigidreg.evaluation.evaluate.evaluate_datalist` across an initialised process group (without
     one: that function, in this process).
 
     Args:
-        datalist, methods, output_dir, max_cases, key, progress, html, overwrite: as ``evaluate_datalist``.
+        datalist, methods, output_dir, max_cases, key, progress, html, overwrite, peer_mask: as
+            ``evaluate_datalist``.
         registrar: this process's :class:`~monai_rigidreg.registration.RigidRegistrar` (each rank builds its own,
             on its own device).
         sampler: this rank's datalist positions (a ``DistributedSampler`` over the datalist's items with
@@ -76,7 +78,8 @@ def evaluate_distributed(
 
     if not (dist.is_available() and dist.is_initialized()):
         return evaluate_datalist(datalist, methods, output_dir, registrar=registrar, max_cases=max_cases, key=key,
-                                 progress=progress, html=html, max_overlays=max_overlays, overwrite=overwrite)
+                                 progress=progress, html=html, max_overlays=max_overlays, overwrite=overwrite,
+                                 peer_mask=peer_mask)
     methods = list(methods)
     items = checked_items(datalist, methods, output_dir, max_cases, key, max_overlays, overwrite)
     rank, world = dist.get_rank(), dist.get_world_size()
@@ -92,7 +95,8 @@ def evaluate_distributed(
         gallery = (OverlayGallery(folder / OVERLAY_DIR, methods, max_others=per_rank_cap)
                    if html and folder is not None else None)
         try:
-            cases = register_cases([items[i] for i in share], methods, registrar, progress, gallery, index_of=share)
+            cases = register_cases([items[i] for i in share], methods, registrar, progress, gallery, index_of=share,
+                                   peer_mask=peer_mask)
             mine: dict[str, Any] = {"share": share, "cases": cases, "images": dict(gallery.images) if gallery else {},
                                     "omitted": gallery.omitted if gallery else 0}
         except Exception as exc:  # every rank learns of it in the exchange below instead of waiting

@@ -19,16 +19,14 @@ Each tool's own convention, as read here (and checked by :func:`check_convention
   It has no centre (the translation column is about the RAS origin). In LPS it is ``F @ Q @ F`` with
   ``F = diag(-1, -1, 1, 1)`` (:func:`~monai_rigidreg.core.geometry.ras_to_lps_transform`); not inverted.
 
-Settings: each tool as its documentation runs a rigid registration, from the identity like the other baselines
-(ANTs' own default would align the centres of mass, which a CBCT's smaller field of view moves), with the CBCT's
-reconstructed field of view as the moving-image mask where given (``moving_mask``; :data:`PEER_FOV_MASK`, measured
-both ways in ``docs/results.md``: on 20 off-centre pairs ANTs registers 6 with it and 7 without, different pairs, and
-greedy as many either way). ANTs runs its ``Rigid``
-defaults (Mattes MI, 32 bins, 20 % regular sampling, 2100x1200x1200x10 iterations at shrink factors 6x4x2x1);
-greedy runs NMI over three levels (``-n 100x50x10``). Neither gets the CT-side mask elastix needs
-(:func:`~monai_rigidreg.registration.classical.moving_footprint`, the CBCT's box on the CT): with it greedy diverged
-on 10 of the 42 held-out real-CT pairs that it registers without it (``-gm``: gradients over the mask only), and
-ANTs on one more (``benchmarks/results/0.4.9/bench_real_ct_0.4.9_peers_2026-12-03.txt``, the first run).
+Settings: each tool as its documentation runs a rigid registration, from the identity like the other baselines (ANTs'
+own default would align the centres of mass, which a CBCT's smaller field of view moves), with the CBCT's reconstructed
+field of view as the moving-image mask where given (``moving_mask``; :data:`PEER_FOV_MASK`, measured both ways in
+``docs/results.md``). ANTs runs its ``Rigid`` defaults (Mattes MI, 32 bins, 20 % regular sampling, 2100x1200x1200x10
+iterations at shrink factors 6x4x2x1); greedy runs NMI over three levels (``-n 100x50x10``). Neither gets the CT-side
+mask elastix needs (:func:`~monai_rigidreg.registration.classical.moving_footprint`, the CBCT's box on the CT): with it
+greedy diverged on 10 of the 42 held-out real-CT pairs that it registers without it (``-gm``: gradients over the mask
+only), and ANTs on one more (``benchmarks/results/0.4.9/bench_real_ct_0.4.9_peers_2026-12-03.txt``, the first run).
 """
 
 from __future__ import annotations

@@ -51,3 +51,57 @@ def test_bench_speed_labels_a_peer_with_the_mask_it_got(monkeypatch):
     assert baseline_label("ants", False) == "ANTs (antspyx, Rigid preset, no mask)"
     assert baseline_label("greedy", True) == "greedy (picsl-greedy, -a -dof 6, NMI, CBCT FOV mask)"
     assert baseline_label("elastix-nomask", True) == "elastix (default rigid map, no mask)"
+
+
+def _fake_result(center=None):
+    import numpy as np
+
+    from monai_rigidreg.registration.classical import ClassicalResult
+
+    return ClassicalResult(np.zeros(6), np.zeros(3) if center is None else np.asarray(center), runtime_s=0.0,
+                           stop_condition="fake")
+
+
+def test_bench_speed_hands_each_baseline_its_mask(monkeypatch, tmp_path):
+    import numpy as np
+    import SimpleITK as sitk
+
+    import benchmarks.speed.bench_speed as bench_speed
+    import monai_rigidreg.registration.classical as classical
+    import monai_rigidreg.registration.peers as peers
+
+    fov = sitk.Image([4, 4, 4], sitk.sitkUInt8)
+    monkeypatch.setattr(bench_speed, "load_case", lambda d: ({}, sitk.Image([4, 4, 4], sitk.sitkFloat32), None))
+    monkeypatch.setattr(bench_speed.sitk, "ReadImage", lambda path: fov)
+    monkeypatch.setattr(bench_speed, "tre_mm", lambda *a: 0.0)
+    got = []
+    monkeypatch.setattr(classical, "register_elastix",
+                        lambda f, m, moving_mask=None: got.append(("elastix", moving_mask is fov)) or _fake_result())
+    monkeypatch.setattr(peers, "register_greedy",
+                        lambda f, m, c=None, mask=None: got.append(("greedy", mask is fov)) or _fake_result())
+    ct = sitk.Image([4, 4, 4], sitk.sitkFloat32)
+    for method, use, expect in (("elastix", None, True), ("elastix-nomask", None, False), ("greedy", None, True),
+                                ("greedy", False, False), ("greedy", True, True)):
+        got.clear()
+        rows = bench_speed.baseline_rows(ct, [tmp_path], method, use)
+        assert got == [(method.split("-")[0], expect)] and len(rows) == 1 and np.isfinite(rows[0]["time_s"])
+
+
+def test_bench_clinical_geometry_hands_the_peer_its_mask(monkeypatch):
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    import monai_rigidreg.registration.peers as peers
+    from benchmarks.accuracy.bench_clinical_geometry import run_method
+
+    fov = object()
+    got = []
+    monkeypatch.setattr(peers, "register_ants",
+                        lambda f, m, c=None, mask=None: got.append(mask is fov) or _fake_result(c))
+    ct = SimpleNamespace(center=np.zeros(3), image=None)
+    case = SimpleNamespace(cbct=None, fov=fov, record={"deformation": None})
+    for use, expect in ((None, True), (False, False), (True, True)):
+        got.clear()
+        out = run_method("ants", ct, case, None, False, use)
+        assert got == [expect] and out["params"].shape == (6,)
