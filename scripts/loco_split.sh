@@ -1,10 +1,14 @@
-# Sourced by scripts/train_loco.sh and scripts/eval_loco.sh (not run on its own): `loco_split NAME HOLD_OUT` sets
-# REAL (the six real CTs: monai_rigidreg.io.shared_data's training CTs and held-out pair) and `others` (all but
-# HOLD_OUT), or stops the calling script with exit status 2 where HOLD_OUT is none of them.
-loco_split() {
-    local caller=$1 hold=$2 name found=0
+# Sourced by scripts/train_loco.sh, scripts/eval_loco.sh and scripts/loco_folds.sh (not run on its own):
+# `loco_real` sets REAL (the six real CTs: monai_rigidreg.io.shared_data's training CTs and held-out pair);
+# `loco_split NAME HOLD_OUT` sets REAL and `others` (all but HOLD_OUT), or stops the calling script with exit status 2
+# where HOLD_OUT is none of them.
+loco_real() {
     read -r -a REAL <<< "$(python -c "from monai_rigidreg.io.shared_data import TRAINING_CTS, HELD_OUT_CTS
 print(*TRAINING_CTS, *HELD_OUT_CTS)")"
+}
+loco_split() {
+    local caller=$1 hold=$2 name found=0
+    loco_real
     others=()
     for name in "${REAL[@]}"; do
         if [ "$name" = "$hold" ]; then found=1; else others+=("$name"); fi

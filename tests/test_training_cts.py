@@ -3,6 +3,7 @@ them and must say the same, and no training CT may be held out."""
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -151,3 +152,34 @@ def test_the_training_script_prepares_without_training_and_refuses_a_used_folder
     used = subprocess.run(["bash", script, str(tmp_path / "used"), "1"], env=env, capture_output=True, text=True,
                           timeout=60)
     assert used.returncode == 2 and "holds an earlier run" in used.stderr
+
+
+def test_the_folds_script_takes_each_fold_up_where_it_stopped(tmp_path):
+    import subprocess
+
+    runs, results = tmp_path / "runs", tmp_path / "results"
+    (results).mkdir()
+    a, b, c, d = TRAINING_CTS[0], TRAINING_CTS[1], HELD_OUT_CTS[0], HELD_OUT_CTS[1]
+    for ct, epochs in ((a, (3, 7)), (b, (12,)), (c, (12,))):
+        (runs / ct / "models").mkdir(parents=True)
+        for e in epochs:
+            (runs / ct / "models" / f"checkpoint_checkpoint_epoch={e}.pt").write_bytes(b"")
+    for kind in ("real_ct", "clinical_geometry"):  # b evaluated at the last epoch, c not yet
+        (results / f"bench_{kind}_loco_{b}_e12_2026-12-06.txt").write_text("x")
+    (results / f"bench_real_ct_loco_{a}_shipped_2026-12-06.txt").write_text("x")
+    env = {**os.environ, "RUNS": str(runs), "RESULTS": str(results), "DRY_RUN": "1"}
+    script = str(REPO / "scripts" / "loco_folds.sh")
+    run = subprocess.run(["bash", script, "12", a, b, c, d], env=env, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    assert lines == [
+        f"loco_folds: {a}: newest checkpoint epoch 7 of 12; next: resume from epoch 7, then evaluate "
+        "(the shipped network's rows: measured)",
+        f"loco_folds: {b}: newest checkpoint epoch 12 of 12; next: done (the shipped network's rows: to measure)",
+        f"loco_folds: {c}: newest checkpoint epoch 12 of 12; next: evaluate (the shipped network's rows: to measure)",
+        f"loco_folds: {d}: newest checkpoint epoch 0 of 12; next: start, then evaluate "
+        "(the shipped network's rows: to measure)"]
+    bad = subprocess.run(["bash", script, "12", a, "my_ct"], env=env, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and "my_ct" in bad.stderr and bad.stdout == ""
+    zero = subprocess.run(["bash", script, "0"], env=env, capture_output=True, text=True, timeout=60)
+    assert zero.returncode == 2 and "positive integer" in zero.stderr
