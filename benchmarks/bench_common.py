@@ -180,10 +180,9 @@ def peer_mask(args: argparse.Namespace) -> bool | None:
 
 def peer_mask_line(args: argparse.Namespace, methods: list[str], out: Tee) -> None:
     """One line saying what each peer tool of ``methods`` gets as its moving-image mask (``--peer-mask``)."""
-    from monai_rigidreg.registration.peers import PEER_FOV_MASK, PEER_METHODS
+    from monai_rigidreg.registration.peers import PEER_METHODS, peer_uses_mask
 
-    use = peer_mask(args)
-    said = [f"{m} {'the CBCT field of view' if (PEER_FOV_MASK[m] if use is None else use) else 'none'}"
+    said = [f"{m} {'the CBCT field of view' if peer_uses_mask(m, peer_mask(args)) else 'none'}"
             for m in methods if m in PEER_METHODS]
     if said:
         out(f"peer tools' moving-image mask (--peer-mask {args.peer_mask}): {', '.join(said)}")

@@ -23,7 +23,7 @@ loco_real
 folds=("$@")
 [ ${#folds[@]} -gt 0 ] || folds=("${REAL[@]}")
 for hold in "${folds[@]}"; do  # every name checked before any fold runs
-    (loco_split loco_folds "$hold") || exit 2
+    (loco_others loco_folds "$hold") || exit 2
 done
 
 newest_epoch() {  # the newest checkpoint's epoch of run folder $1 (0: none)

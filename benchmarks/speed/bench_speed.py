@@ -176,12 +176,11 @@ BASELINES = {"elastix": "elastix (default rigid map, CBCT FOV mask)",
 def baseline_label(method: str, use_mask: bool | None = None) -> str:
     """:data:`BASELINES`' label of ``method``, a peer tool's with the mask it got (``use_mask`` as
     :func:`~monai_rigidreg.registration.peers.register_peer`'s)."""
-    from monai_rigidreg.registration.peers import PEER_FOV_MASK, PEER_METHODS
+    from monai_rigidreg.registration.peers import PEER_METHODS, peer_uses_mask
 
     if method not in PEER_METHODS:
         return BASELINES[method]
-    masked = PEER_FOV_MASK[method] if use_mask is None else use_mask
-    return BASELINES[method][:-1] + (", CBCT FOV mask)" if masked else ", no mask)")
+    return BASELINES[method][:-1] + (", CBCT FOV mask)" if peer_uses_mask(method, use_mask) else ", no mask)")
 
 
 def baseline_rows(ct: sitk.Image, cases: list[Path], method: str = "elastix",
@@ -352,11 +351,11 @@ def main() -> None:
         summarize(out, "monai-rigidreg (--thorough)", thorough, t_elx)
     if final_norm is not None:
         summarize(out, f"monai-rigidreg (final pass at {args.final_norm_mm:g} mm)", final_norm, t_elx)
-    for m in baselines:
-        summarize(out, baseline_label(m, peer_mask(args)), rows_of[m], None if m == "elastix" else t_elx)
-    if "elastix-nomask" in rows_of:
-        t_nomask = float(np.median([r["time_s"] for r in rows_of["elastix-nomask"]]))
-        out(f"\nthe default path against elastix's default rigid map without a mask: {t_nomask / t_ours:.2f}x")
+    t_of = {m: summarize(out, baseline_label(m, peer_mask(args)), rows_of[m], None if m == "elastix" else t_elx)
+            for m in baselines}
+    if "elastix-nomask" in t_of:
+        out(f"\nthe default path against elastix's default rigid map without a mask: "
+            f"{t_of['elastix-nomask'] / t_ours:.2f}x")
     out("\nmedian seconds per stage (0 where a stage did not run): " + stage_medians(ours))
     out(f"flagged: {sum(r['flagged'] for r in ours)} of {len(ours)}; network-led path's fallback ran on "
         f"{sum(r['fallback'] for r in ours)} of {len(ours)}")

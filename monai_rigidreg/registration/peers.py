@@ -58,7 +58,7 @@ from monai_rigidreg.registration.classical import ClassicalResult
 
 __all__ = ["PEER_METHODS", "ants_available", "greedy_available", "peer_available", "register_ants",
            "register_greedy", "register_peer", "known_motion_pair", "check_convention", "CONVENTION_TOLERANCE",
-           "ANTS_STARTS", "PEER_FOV_MASK"]
+           "ANTS_STARTS", "PEER_FOV_MASK", "peer_uses_mask"]
 
 logger = logging.getLogger(__name__)
 
@@ -274,15 +274,25 @@ PEER_FOV_MASK = {"ants": True, "greedy": True}
 """Whether :func:`register_peer` gives each tool the CBCT's field of view (``moving_mask``) by default."""
 
 
+def peer_uses_mask(method: str, use_mask: bool | None = None) -> bool:
+    """Whether :func:`register_peer` hands ``method``'s tool the CBCT's field of view: ``use_mask`` where given, the
+    tool's :data:`PEER_FOV_MASK` otherwise.
+
+    >>> peer_uses_mask("ants"), peer_uses_mask("ants", False)
+    (True, False)
+    """
+    if method not in PEER_METHODS:
+        raise ValueError(f"unknown peer method {method!r}; choose from {PEER_METHODS}")
+    return PEER_FOV_MASK[method] if use_mask is None else bool(use_mask)
+
+
 def register_peer(method: str, fixed: sitk.Image, moving: sitk.Image, center: Sequence[float] | None = None,
                   moving_mask: sitk.Image | None = None, use_mask: bool | None = None) -> ClassicalResult:
     """:func:`register_ants` or :func:`register_greedy` by method name, with the benchmarks' settings.
 
     ``moving_mask`` (the CBCT's field of view) reaches the tool where ``use_mask`` says so (``None``: the tool's
     :data:`PEER_FOV_MASK`); ``False`` runs it on the whole images, as elastix's default rigid map runs."""
-    if method not in PEER_METHODS:
-        raise ValueError(f"unknown peer method {method!r}; choose from {PEER_METHODS}")
-    mask = moving_mask if (PEER_FOV_MASK[method] if use_mask is None else use_mask) else None
+    mask = moving_mask if peer_uses_mask(method, use_mask) else None
     if method == "ants":
         return register_ants(fixed, moving, center, mask)
     return register_greedy(fixed, moving, center, mask)
