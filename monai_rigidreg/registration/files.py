@@ -94,6 +94,7 @@ def register_files(
     patient_warning = check_same_patient(provenance["inputs"]["fixed"], provenance["inputs"]["moving"],
                                          allow_other_patient)
     position, position_source, position_problem = _patient_position(provenance["inputs"]["fixed"], patient_position)
+    position_mismatch = _position_mismatch(provenance["inputs"]["fixed"], provenance["inputs"]["moving"])
     load_warnings: list[str] = []  # e.g. a DICOM series resampled over a slice gap
     fixed_img = load_volume(fixed, series_uid=fixed_series_uid, warnings=load_warnings)
     moving_img = load_volume(moving, series_uid=moving_series_uid, warnings=load_warnings)
@@ -109,9 +110,10 @@ def register_files(
     if reg_warning:
         logger.warning("%s", reg_warning)
         result.details.setdefault("warnings", []).append(reg_warning)
-    if position_problem:
-        logger.warning("%s", position_problem)
-        result.details.setdefault("warnings", []).append(position_problem)
+    for problem in (position_problem, position_mismatch):
+        if problem:
+            logger.warning("%s", problem)
+            result.details.setdefault("warnings", []).append(problem)
     result.couch_shift = couch_shift_record(result.matrix, moving_img, position, position_source, iso,
                                             position_problem)
     paths = write_outputs(result, fixed_img, moving_img, output_dir, overwrite=overwrite, qc=qc,
@@ -146,6 +148,24 @@ def _patient_position(fixed_record: dict[str, Any], given: str | None) -> tuple[
     except InputError as exc:
         return None, "CT DICOM header", f"no couch shifts: the CT's {exc}"
     return header, "CT DICOM header", ""
+
+
+def _position_mismatch(fixed_record: dict[str, Any], moving_record: dict[str, Any]) -> str:
+    """The warning to record where the CT's and the CBCT's DICOM Patient Position (0018,5100) differ (the couch axes
+    follow the CT's, or ``--patient-position``), else ``""``; nothing is said where either lacks one.
+
+    >>> hfs, ffs = ({"format": "dicom", "patient_position": p} for p in ("HFS", "FFS"))
+    >>> _position_mismatch(hfs, ffs).split(":")[0]
+    "the CT's Patient Position is HFS and the CBCT's FFS"
+    """
+    if fixed_record.get("format") != "dicom" or moving_record.get("format") != "dicom":
+        return ""
+    ct, cbct = (str(r.get("patient_position") or "").strip().upper() for r in (fixed_record, moving_record))
+    if not ct or not cbct or ct == cbct:
+        return ""
+    return (f"the CT's Patient Position is {ct} and the CBCT's {cbct}: the couch shifts use {ct}'s axes (or "
+            "--patient-position); a patient treated in another position than planned needs checking before the "
+            "couch is moved")
 
 
 def _point(value: Any, name: str) -> tuple[float, float, float]:

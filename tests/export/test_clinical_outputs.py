@@ -41,9 +41,27 @@ def dicom_pair(pair, tmp_path_factory):
     return root / "ct", root / "cbct"
 
 
+class _TrueMotionRegistrar:
+    """The small untrained registrar with its estimate replaced by the pair's true motion: an untrained network's
+    estimate is the identity, under which a missing or doubled inverse, a flipped sign or a swapped axis in what the
+    outputs re-express (the REG's matrix, the couch shifts, transformix's parameters) would not show."""
+
+    def __init__(self, registrar, params):
+        self._registrar, self._params = registrar, np.asarray(params, dtype=np.float64)
+
+    def __getattr__(self, name):
+        return getattr(self._registrar, name)
+
+    def __call__(self, *args, **kwargs):
+        result = self._registrar(*args, **kwargs)
+        result.params = self._params.copy()
+        result.registered = None  # the registrar's own resampling, under its estimate: written again from the motion
+        return result
+
+
 @pytest.fixture(autouse=True)
 def small_network(monkeypatch):
-    reg = small_registrar_for_tests()
+    reg = _TrueMotionRegistrar(small_registrar_for_tests(), MOTION)
     monkeypatch.setattr(RigidRegistrar, "from_bundle", classmethod(lambda cls, *a, **k: reg))
 
 
@@ -58,6 +76,8 @@ def test_dicom_inputs_get_a_spatial_registration_whose_matrix_inverts_the_transf
     assert referenced == {"1.2.826.0.1.3680043.8.498.101", "1.2.826.0.1.3680043.8.498.102"}
     matrices = read_spatial_registration(out / "registration.dcm")
     fixed_to_moving = np.array(json.loads((out / "result.json").read_text())["matrix"])
+    # a moved pair: an identity estimate would let a missing inverse of the REG's matrix pass unseen
+    assert np.abs(fixed_to_moving[:3, 3]).max() > 2.0 and np.abs(fixed_to_moving[:3, :3] - np.eye(3)).max() > 0.02
     tfm = sitk.ReadTransform(str(out / "transform.tfm"))
     pts = np.array([[0.0, 0.0, 0.0], [40.0, -30.0, 20.0], [-25.0, 35.0, -40.0]])
     moved = np.array([tfm.TransformPoint(p.tolist()) for p in pts])  # CT points -> CBCT points
@@ -101,8 +121,10 @@ def test_couch_shift_equals_the_correction_at_the_isocentre(pair, tmp_path):
     displacement = transform_points(np.array(result["matrix"]), np.array([iso]))[0] - np.array(iso)
     shift = np.array([couch["3dof"][k] for k in ("lateral", "longitudinal", "vertical")])
     np.testing.assert_allclose(np.linalg.norm(shift), np.linalg.norm(displacement), atol=1e-6)
-    # HFS: patient left (+x) is IEC +X, so the lateral correction undoes the left-right displacement
-    np.testing.assert_allclose(shift[0], -displacement[0], atol=1e-6)
+    # HFS: patient left (+x) is IEC +X, posterior (+y) is IEC -Z and superior (+z) IEC +Y: the correction undoes the
+    # displacement on each axis
+    assert np.abs(displacement).min() > 0.5  # every axis moved, so a swapped or flipped axis shows
+    np.testing.assert_allclose(shift, [-displacement[0], -displacement[2], displacement[1]], atol=1e-6)
     assert set(couch["6dof"]) == {"lateral", "longitudinal", "vertical", "pitch", "roll", "couch_rotation"}
     assert main(["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir",
                  str(tmp_path / "bad"), "--isocenter", "1,2"]) == 2
@@ -172,6 +194,21 @@ def test_patient_position_option_header_and_unsupported_values(pair, dicom_pair,
                  "--no-qc"]) == 0
     result = json.loads((out / "result.json").read_text())
     assert "unsupported patient position" in result["couch_shift"]["unavailable"]
+    # the CT planned head first supine, the CBCT feet first: the CT's axes, and a warning in the audit trail
+    ct_hfs, cbct_ffs = tmp_path / "ct_hfs", tmp_path / "cbct_ffs"
+    for src, dst, value in ((dicom_pair[0], ct_hfs, "HFS"), (dicom_pair[1], cbct_ffs, "FFS")):
+        shutil.copytree(src, dst)
+        for f in dst.iterdir():
+            ds = pydicom.dcmread(f)
+            ds.PatientPosition = value
+            ds.save_as(f)
+    out = tmp_path / "positions_differ"
+    assert main(["register", "--fixed", str(ct_hfs), "--moving", str(cbct_ffs), "--output-dir", str(out),
+                 "--no-qc"]) == 0
+    result = json.loads((out / "result.json").read_text())
+    assert result["couch_shift"]["patient_position"] == "HFS"
+    assert result["couch_shift"]["patient_position_source"] == "CT DICOM header"
+    assert [w for w in result["details"]["warnings"] if "Patient Position is HFS and the CBCT's FFS" in w]
 
 
 def test_a_dicom_slice_gap_is_recorded_in_result_json(pair, dicom_pair, tmp_path, caplog):
