@@ -138,6 +138,30 @@ def small_registrar_for_tests(cascade_steps: int = 1):
                           cascade_steps=cascade_steps, device="cpu")
 
 
+def true_motion_registrar(registrar, motion):
+    """``registrar`` (e.g. :func:`small_registrar_for_tests`) with its estimate replaced by a pair's true motion.
+
+    The untrained test network's estimate is exactly the identity, under which a missing or doubled inverse, a
+    flipped sign or a swapped axis in what the outputs re-express (result.json's matrices, transform.tfm, the REG,
+    the couch shifts, transformix's parameters, registered.nii.gz) would not show. ``motion``: six numbers (mm,
+    degrees, fixed -> moving about the CT centre), or ``motion(fixed, moving)`` giving them per pair. The result's
+    ``registered`` is set to ``None``, so the outputs resample the CBCT under the motion themselves. The returned
+    object is a ``RigidRegistrar`` (a subclass sharing the registrar's state), so ``register(model=...)`` takes it.
+    """
+    motion_for = motion if callable(motion) else (lambda fixed, moving: motion)
+
+    class TrueMotion(type(registrar)):
+        def __call__(self, fixed, moving, *args, **kwargs):
+            result = super().__call__(fixed, moving, *args, **kwargs)
+            result.params = np.asarray(motion_for(fixed, moving), dtype=np.float64).copy()
+            result.registered = None  # the registrar's resampling under its own estimate: written again
+            return result
+
+    wrapped = object.__new__(TrueMotion)
+    wrapped.__dict__.update(vars(registrar))
+    return wrapped
+
+
 def resampled_with_truth(fixed, moving, fov, transform):
     """``(fixed, registered, raw, mask)`` arrays for checking a simulated pair's ground truth: the CBCT resampled on
     the CT grid with the true transform and with the identity, and the voxels both place inside the CBCT's FOV."""

@@ -40,6 +40,13 @@ def test_demo_promise_holds_on_a_faster_simulation(tmp_path, capsys):
     assert record["couch_shift"]["6dof"] and record["couch_shift"]["patient_position_assumed"] is True
     assert record["provenance"]["inputs"]["fixed"]["path"] == str((out / "data" / "simct.nii.gz").resolve())
     assert record["provenance"]["bundle"]["weights_sha256"] and record["provenance"]["device"] == "cpu"
+    # transform.tfm: the whole estimate (Euler3D: radians, then mm) about result.json's centre; the demo's motion
+    # turns about every axis, so a rotation convention wrong in the file shows
+    params = [record["params"][k] for k in ("tx", "ty", "tz", "rx", "ry", "rz")]
+    np.testing.assert_allclose(params, list(report["pred"].values()), atol=1e-3)
+    tfm = read_transform(out / "registration" / "transform.tfm")
+    np.testing.assert_allclose(tfm.GetParameters(), [*np.deg2rad(params[3:]), *params[:3]], atol=1e-6)
+    np.testing.assert_allclose(tfm.GetFixedParameters()[:3], record["center"], atol=1e-6)
     # an existing output folder is refused before any work, by the command and by the function
     assert main(["demo", "--output-dir", str(out), "--device", "cpu"]) != 0
     assert "exists" in capsys.readouterr().err.lower()
@@ -70,7 +77,8 @@ def test_demo_recovers_the_known_motion_with_the_shipped_weights(tmp_path, capsy
     for name in ("transform.tfm", "registered.nii.gz", "result.json", "qc.png"):
         assert (out / "registration" / name).is_file(), name
     tfm = read_transform(out / "registration" / "transform.tfm")
-    np.testing.assert_allclose(tfm.GetParameters()[3:], list(report["pred"].values())[:3], atol=1e-3)
+    pred = list(report["pred"].values())  # (rounded to 0.001)
+    np.testing.assert_allclose(tfm.GetParameters(), [*np.deg2rad(pred[3:]), *pred[:3]], atol=1e-3)
     assert sitk.ReadImage(str(out / "data" / "simct.nii.gz")).GetSize() == (128, 128, 128)
     # an existing output folder is refused (exit status != 0, a message) and left as it was
     before = (out / "demo.json").read_text()

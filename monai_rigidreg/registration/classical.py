@@ -52,7 +52,7 @@ def register_sitk(fixed: sitk.Image, moving: sitk.Image, initial_params: Sequenc
                   center: Sequence[float] | None = None, fixed_mask: sitk.Image | None = None,
                   moving_mask: sitk.Image | None = None, shrink_factors: Sequence[int] = (4, 2, 1),
                   smoothing_sigmas_mm: Sequence[float] = (2.0, 1.0, 0.0), iterations: int = 200, bins: int = 32,
-                  samples: int = 20000, learning_rate: float = 1.0, seed: int = 0) -> ClassicalResult:
+                  samples: int = 20000, learning_rate: float = 1.0, seed: int = 1) -> ClassicalResult:
     """Mattes-MI, Euler3D, multi-resolution SimpleITK registration.
 
     Args:
@@ -69,11 +69,15 @@ def register_sitk(fixed: sitk.Image, moving: sitk.Image, initial_params: Sequenc
         samples: random fixed-image samples per iteration at every level (as elastix does; a percentage of the
             voxels would mean millions of samples for a 256^3 CT at full resolution).
         learning_rate: regular-step gradient descent's initial step (physical units after scaling).
-        seed: sampling seed (deterministic results).
+        seed: the metric's sampling seed: the same inputs and seed give the same result. SimpleITK reads 0 as
+            ``sitkWallClock`` (a new seed each call), so 0 is refused.
 
     Returns:
         a :class:`ClassicalResult` in the project convention.
     """
+    if int(seed) == sitk.sitkWallClock:
+        raise ValueError("register_sitk: seed 0 is SimpleITK's wall clock (a different result each call); give a "
+                         "non-zero seed")
     t0 = time.perf_counter()
     fixed_f = sitk.Cast(fixed, sitk.sitkFloat32)
     moving_f = sitk.Cast(moving, sitk.sitkFloat32)

@@ -193,11 +193,21 @@ def test_inference_registers_offline_with_the_shipped_weights(shipped_bundle, fa
     result = _inference(shipped_bundle, fast_pair, tmp_path / "out")
     for name in ("transform.tfm", "registered.nii.gz", "result.json", "qc.png"):
         assert (tmp_path / "out" / name).is_file(), name
-    tfm = sitk.ReadTransform(str(tmp_path / "out" / "transform.tfm"))
-    np.testing.assert_allclose(tfm.GetParameters()[3:], [result["params"][k] for k in ("tx", "ty", "tz")], atol=1e-6)
     names = ("tx", "ty", "tz", "rx", "ry", "rz")
-    pts = body_points(load_volume(fast_pair["fixed"]))
-    tre = target_registration_error([result["params"][k] for k in names], KNOWN_MOTION, pts, center=result["center"])
+    params = [result["params"][k] for k in names]
+    # transform.tfm: the whole estimate (Euler3D: rx, ry, rz in radians, then mm) about result.json's centre, not
+    # its translations alone (a rotation convention wrong there would not show)
+    tfm = sitk.ReadTransform(str(tmp_path / "out" / "transform.tfm"))
+    np.testing.assert_allclose(tfm.GetParameters(), [*np.deg2rad(params[3:]), *params[:3]], atol=1e-6)
+    np.testing.assert_allclose(tfm.GetFixedParameters()[:3], result["center"], atol=1e-6)
+    assert np.abs(params[3:]).min() > 1.0  # rotated about every axis (KNOWN_MOTION)
+    # ... and registered.nii.gz is the CBCT resampled on the CT's grid under it
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    again = sitk.Resample(moving, fixed, tfm, sitk.sitkLinear, float(sitk.GetArrayViewFromImage(moving).min()))
+    np.testing.assert_allclose(sitk.GetArrayFromImage(again),
+                               sitk.GetArrayFromImage(load_volume(tmp_path / "out" / "registered.nii.gz")), atol=1e-3)
+    pts = body_points(fixed)
+    tre = target_registration_error(params, KNOWN_MOTION, pts, center=result["center"])
     assert tre < 2.0  # as register() on the same pair (tests/test_register.py)
     # the regression alone (tests/test_alignment.py pins that the switch returns exactly its estimate): another answer
     alone = _inference(shipped_bundle, fast_pair, tmp_path / "alone", "--fine_stage", "False")

@@ -11,7 +11,7 @@ import numpy as np
 import pydicom
 import pytest
 import SimpleITK as sitk
-from conftest import TINY_SIM, small_registrar_for_tests, write_dicom_series
+from conftest import TINY_SIM, small_registrar_for_tests, true_motion_registrar, write_dicom_series
 
 from monai_rigidreg.cli import main
 from monai_rigidreg.core.geometry import transform_points
@@ -41,27 +41,10 @@ def dicom_pair(pair, tmp_path_factory):
     return root / "ct", root / "cbct"
 
 
-class _TrueMotionRegistrar:
-    """The small untrained registrar with its estimate replaced by the pair's true motion: an untrained network's
-    estimate is the identity, under which a missing or doubled inverse, a flipped sign or a swapped axis in what the
-    outputs re-express (the REG's matrix, the couch shifts, transformix's parameters) would not show."""
-
-    def __init__(self, registrar, params):
-        self._registrar, self._params = registrar, np.asarray(params, dtype=np.float64)
-
-    def __getattr__(self, name):
-        return getattr(self._registrar, name)
-
-    def __call__(self, *args, **kwargs):
-        result = self._registrar(*args, **kwargs)
-        result.params = self._params.copy()
-        result.registered = None  # the registrar's own resampling, under its estimate: written again from the motion
-        return result
-
-
 @pytest.fixture(autouse=True)
 def small_network(monkeypatch):
-    reg = _TrueMotionRegistrar(small_registrar_for_tests(), MOTION)
+    # the untrained network estimates the identity: its estimate replaced by the motion (conftest)
+    reg = true_motion_registrar(small_registrar_for_tests(), MOTION)
     monkeypatch.setattr(RigidRegistrar, "from_bundle", classmethod(lambda cls, *a, **k: reg))
 
 
@@ -176,9 +159,17 @@ def test_patient_position_option_header_and_unsupported_values(pair, dicom_pair,
                      "--no-qc", *extra]) == 0
         runs[name] = json.loads((out / "result.json").read_text())["couch_shift"]
     assert runs["ffs"]["patient_position"] == "FFS" and runs["ffs"]["patient_position_source"] == "--patient-position"
-    # feet first: patient left is IEC -X and superior is -Y, so lateral and longitudinal change sign
-    np.testing.assert_allclose(runs["ffs"]["3dof"]["lateral"], -runs["hfs"]["3dof"]["lateral"], atol=1e-9)
-    np.testing.assert_allclose(runs["ffs"]["3dof"]["longitudinal"], -runs["hfs"]["3dof"]["longitudinal"], atol=1e-9)
+    # feet first: patient left is IEC -X and superior is -Y (a half turn about IEC Z), so lateral, longitudinal, pitch
+    # (about X) and roll (about Y) change sign, vertical and the couch rotation (about Z) do not; every one of them
+    # is non-zero under the motion, so a sign or an axis wrong shows
+    hfs, ffs = runs["hfs"]["6dof"], runs["ffs"]["6dof"]
+    assert min(abs(v) for v in hfs.values()) > 0.2, hfs
+    for key in ("lateral", "longitudinal", "pitch", "roll"):
+        np.testing.assert_allclose(ffs[key], -hfs[key], atol=1e-9, err_msg=key)
+    for key in ("vertical", "couch_rotation"):
+        np.testing.assert_allclose(ffs[key], hfs[key], atol=1e-9, err_msg=key)
+    for key in ("lateral", "longitudinal", "vertical"):
+        assert runs["ffs"]["3dof"][key] == ffs[key] and runs["hfs"]["3dof"][key] == hfs[key]
     assert main(["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir",
                  str(tmp_path / "sitting"), "--patient-position", "SITTING"]) == 2
     assert not (tmp_path / "sitting").exists()

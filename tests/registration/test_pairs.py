@@ -9,15 +9,20 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
-from conftest import TINY_SIM, small_registrar_for_tests
+import SimpleITK as sitk
+from conftest import TINY_SIM, small_registrar_for_tests, true_motion_registrar
 
 from monai_rigidreg.cli import main
 from monai_rigidreg.core.errors import InputError
+from monai_rigidreg.io import load_volume
 from monai_rigidreg.registration import RigidRegistrar
 from monai_rigidreg.registration.pairs import RegistrationEvaluator, registration_pairs
 
 BUNDLE = Path(__file__).resolve().parents[2] / "bundles" / "cbct_ct_rigid"
+MOTIONS = ([4.0, -3.0, 2.0, 2.0, -1.0, 3.0], [-3.0, 2.0, 4.0, -2.0, 1.0, -3.0])
+"""The true motions of the datalist's two good pairs, case0 and case1 (mm, degrees, CT -> CBCT about the CT centre)."""
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +32,7 @@ def pairs_file(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("batch")
     items = []
-    for k, motion in enumerate(([4.0, -3.0, 2.0, 2.0, -1.0, 3.0], [-3.0, 2.0, 4.0, -2.0, 1.0, -3.0])):
+    for k, motion in enumerate(MOTIONS):
         sim = simulate_pair(root / f"p{k}", phantom="shepp-logan-asym", params=motion, seed=10 + k,
                             **{key: v for key, v in TINY_SIM.items() if key != "preset"})
         items.append({"case_id": f"case{k}", "fixed": str(Path(sim["fixed"]).relative_to(root)),
@@ -38,7 +43,16 @@ def pairs_file(tmp_path_factory):
 
 
 def test_register_datalist_registers_every_pair_and_skips_the_broken_one(pairs_file, tmp_path, monkeypatch, capsys):
-    reg = small_registrar_for_tests()
+    # each pair's estimate replaced by its own true motion (found by its CBCT): the untrained network's identity
+    # would give every case the same outputs, so pairs mixed up or an inverted transform file would pass unseen
+    items = json.loads(pairs_file.read_text())[:2]
+    cbcts = [sitk.GetArrayFromImage(load_volume(pairs_file.parent / item["moving"])) for item in items]
+
+    def motion_of(fixed, moving):
+        (k,) = [k for k, a in enumerate(cbcts) if np.array_equal(a, sitk.GetArrayViewFromImage(moving))]
+        return MOTIONS[k]
+
+    reg = true_motion_registrar(small_registrar_for_tests(), motion_of)
     loads = []
     monkeypatch.setattr(RigidRegistrar, "from_bundle", classmethod(lambda cls, *a, **k: loads.append(1) or reg))
     out = tmp_path / "out"
@@ -47,8 +61,13 @@ def test_register_datalist_registers_every_pair_and_skips_the_broken_one(pairs_f
     assert "1 of 3 pairs failed and were skipped (broken)" in err and "Traceback" not in err
     assert loads == [1]  # the network is loaded once for the whole batch
     assert sorted(p.name for p in out.iterdir()) == ["case0", "case1"]  # nothing of the broken pair
-    for case in ("case0", "case1"):
-        assert (out / case / "result.json").is_file() and (out / case / "transform.tfm").is_file()
+    for case, motion in zip(("case0", "case1"), MOTIONS):
+        result = json.loads((out / case / "result.json").read_text())
+        assert [result["params"][n] for n in ("tx", "ty", "tz", "rx", "ry", "rz")] == pytest.approx(motion)
+        # transform.tfm: that pair's transform, CT points -> CBCT points (Euler3D: radians, then mm)
+        tfm = sitk.ReadTransform(str(out / case / "transform.tfm"))
+        assert tfm.GetParameters() == pytest.approx([*np.deg2rad(motion[3:]), *motion[:3]], abs=1e-9)
+        np.testing.assert_allclose(tfm.GetCenter(), result["center"], atol=1e-9)
     assert main(["register", "--datalist", str(pairs_file), "--fixed", "x", "--output-dir", str(tmp_path / "o")]) == 2
 
 

@@ -12,7 +12,7 @@ from conftest import KNOWN_MOTION, TINY_SIM, small_registrar_for_tests, write_di
 
 from monai_rigidreg.cli import main
 from monai_rigidreg.core.errors import InputError, OutputExistsError
-from monai_rigidreg.core.geometry import Grid, params_to_matrix, target_registration_error
+from monai_rigidreg.core.geometry import Grid, params_to_matrix, target_registration_error, transform_points
 from monai_rigidreg.export.outputs import write_outputs
 from monai_rigidreg.export.transform_files import read_transform
 from monai_rigidreg.io import load_volume
@@ -934,27 +934,53 @@ def _couch_keys(record: dict) -> set:
     return {k for k in COUCH_KEYS if k in record}
 
 
-def test_every_entry_point_gives_couch_shifts_and_an_audit_trail(pair, small_registrar, tmp_path):
+def _input_dependent_registrar():
+    """The small untrained registrar with its output layer drawn at random (seeded): its estimate depends on the
+    inputs and moves every axis. The untrained network's is exactly the identity whatever the inputs, under which
+    two ways of reading them give equal parameters, and couch shifts are zero at any isocentre."""
+    registrar = small_registrar_for_tests()
+    head = registrar.network.head.weight
+    with torch.no_grad():
+        head.copy_(0.05 * torch.randn(head.shape, generator=torch.Generator().manual_seed(0)))
+    return registrar
+
+
+def test_every_entry_point_gives_couch_shifts_and_an_audit_trail(pair, tmp_path):
     """``register()`` (paths or images), a bare registrar's result written by ``write_outputs`` (the demo's way) and
-    ``register_files`` all carry ``couch_shift`` and ``provenance``: they were absent or empty outside the command."""
+    ``register_files`` all carry ``couch_shift`` and ``provenance``: they were absent or empty outside the command.
+    The couch shifts are at the CBCT's centre, here 20 mm from the CT's (the rotation centre), under an estimate
+    that moves every axis, so an isocentre placed elsewhere, a swapped or a flipped axis shows."""
     from monai_rigidreg.registration.files import register_files
 
-    by_path = register(pair["fixed"], pair["moving"], model=small_registrar)
-    fixed, moving = load_volume(pair["fixed"]), load_volume(pair["moving"])
-    by_image = register(fixed, moving, model=small_registrar)
+    registrar = _input_dependent_registrar()
+    fixed = load_volume(pair["fixed"])
+    moving = load_volume(pair["moving"])[:, :, 4:]  # (the pair's CBCT shares the CT's centre)
+    cbct = tmp_path / "cbct.nii.gz"
+    sitk.WriteImage(moving, str(cbct))
+    iso = Grid.from_sitk(moving).center()
+    assert np.linalg.norm(iso - Grid.from_sitk(fixed).center()) > 10.0
+    by_path = register(pair["fixed"], cbct, model=registrar)
+    by_image = register(fixed, moving, model=registrar)
     for result in (by_path, by_image):
         assert _couch_keys(result.couch_shift) == COUCH_KEYS
         assert result.couch_shift["patient_position"] == "HFS" and result.couch_shift["patient_position_assumed"]
         assert result.couch_shift["isocentre_source"] == "CBCT centre (default)"
+        np.testing.assert_allclose(result.couch_shift["isocentre_lps_mm"], iso, atol=1e-4)
+        # HFS: the correction undoes the displacement of the anatomy at the isocentre (LPS x, y, z: IEC X, -Z, Y)
+        d = transform_points(result.matrix, iso[None])[0] - iso
+        assert np.abs(d).min() > 0.5 and np.abs(d - result.params[:3]).max() > 0.5  # the rotation moves it too
+        np.testing.assert_allclose([result.couch_shift["3dof"][k] for k in ("lateral", "longitudinal", "vertical")],
+                                   [-d[0], -d[2], d[1]], atol=1e-4)
         assert {"inputs", "bundle", "software", "device", "timestamp_utc"} <= set(result.provenance)
         assert result.timings["load"] <= result.timings["total"]
     assert by_path.provenance["inputs"]["moving"]["path"].endswith("cbct.nii.gz")
     assert by_image.provenance["inputs"]["moving"] == {"path": None, "format": "image in memory"}
-    np.testing.assert_allclose(by_path.params, by_image.params, atol=1e-6)  # reading it first changes nothing
-    bare = small_registrar(fixed, moving)
+    assert np.abs(by_path.params).min() > 0.5  # an estimate of its inputs, on every axis
+    np.testing.assert_allclose(by_path.params, by_image.params, atol=1e-4)  # reading it first changes nothing
+    bare = registrar(fixed, moving)
     assert bare.couch_shift == {} and bare.provenance == {}
     write_outputs(bare, fixed, moving, tmp_path / "bare", qc=False, names=("ct.nii.gz", "cbct.nii.gz"))
-    files = register_files(small_registrar, pair["fixed"], pair["moving"], tmp_path / "files", qc=False)
+    files = register_files(registrar, pair["fixed"], cbct, tmp_path / "files", qc=False)
     records = [json.loads((tmp_path / "bare" / "result.json").read_text()),
                json.loads(files["result.json"].read_text())]
     for record in records:
@@ -962,4 +988,5 @@ def test_every_entry_point_gives_couch_shifts_and_an_audit_trail(pair, small_reg
     assert records[0]["provenance"]["inputs"]["fixed"] == {"path": None, "format": "image in memory",
                                                            "name": "ct.nii.gz"}
     shifts = [list(r["couch_shift"]["6dof"].values()) for r in records]
-    np.testing.assert_allclose(shifts[0], shifts[1], atol=1e-6)  # the same defaults as the command's
+    assert np.abs(shifts[0]).min() > 0.5, shifts[0]
+    np.testing.assert_allclose(shifts[0], shifts[1], atol=1e-4)  # the same defaults as the command's

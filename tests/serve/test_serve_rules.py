@@ -140,12 +140,18 @@ def test_ct_choice_by_patient_frame_and_study_refuses_ambiguity():
 
 # -- flags -----------------------------------------------------------------------------------------------------------
 def test_flag_reasons_follow_the_package_flag_and_the_thresholds():
+    # the couch shift at the isocentre (5.4 mm: the rotation about the CT centre moves the isocentre too) is not the
+    # translation parameter (5.0 mm), and the largest angle (6.0) not the rotation's size (6.1), so the message says
+    # which was compared
     summary = {"flagged": False, "confidence": 0.9, "params": dict(tx=3.0, ty=4.0, tz=0.0, rx=1.0, ry=-6.0, rz=0.0),
-               "couch_shift": {"3dof": {"lateral": -3.0, "longitudinal": 0.0, "vertical": 4.0}}}
+               "couch_shift": {"3dof": {"lateral": -3.0, "longitudinal": 2.0, "vertical": 4.0}}}
     assert flag_reasons(summary, Thresholds(0.5, 20.0, 10.0)) == []
     reasons = flag_reasons(summary, Thresholds(0.95, 4.0, 5.0))
-    assert reasons == ["confidence 0.90 below 0.95", "translation 5.0 mm above 4 mm",
+    assert reasons == ["confidence 0.90 below 0.95", "translation 5.4 mm above 4 mm",
                        "rotation 6.0 degrees above 5 degrees"]
+    no_couch = {k: v for k, v in summary.items() if k != "couch_shift"}  # where none could be given: the parameters
+    assert flag_reasons(no_couch, Thresholds(None, 4.0, None)) == ["translation 5.0 mm above 4 mm"]
+    assert flag_reasons(summary, Thresholds(None, 5.2, None)) != flag_reasons(no_couch, Thresholds(None, 5.2, None))
     assert "own check flagged it" in flag_reasons({**summary, "flagged": True}, Thresholds(None, None, None))[0]
     assert flag_reasons(summary, Thresholds(None, None, None)) == []
 
