@@ -12,6 +12,7 @@ from monai_rigidreg.core.geometry import (
     Grid,
     compose_matrices,
     lps_to_ras_affine,
+    mask_points,
     matrix_to_params,
     matrix_to_params_torch,
     normalized_theta,
@@ -166,6 +167,27 @@ def test_tre_and_parameter_errors():
     assert target_registration_error(t_pred, t_true, mask) == pytest.approx(5.0)
     err = parameter_errors([[1, 2, 3, 179, 0, -1]], [[0, 2, 5, -179, 0, 1]])
     np.testing.assert_allclose(err, [[1, 0, 2, 2, 0, 2]], atol=1e-12)
+
+
+def test_mask_points_are_the_physical_points_of_the_mask_voxels():
+    """mask_points reads SimpleITK's [z, y, x] array: each non-zero voxel (i, j, k) gives its own LPS point (a
+    non-cubic, anisotropic, oblique mask, so an x/z swap or a missing direction shows), and a rotation's TRE over
+    the mask is the TRE over those points."""
+    mask = sitk.Image(5, 6, 7, sitk.sitkUInt8)
+    mask.SetSpacing((1.0, 2.0, 3.0))
+    mask.SetOrigin((10.0, -20.0, 30.0))
+    mask.SetDirection(oblique_direction(10.0, -20.0, 30.0))
+    voxels = [(0, 1, 2), (4, 0, 6), (1, 5, 3), (3, 2, 0)]  # ITK index order (i, j, k) = (x, y, z)
+    for v in voxels:
+        mask[v] = 1
+    expected = np.array([mask.TransformIndexToPhysicalPoint(v) for v in voxels])
+    found = mask_points(mask)
+    assert found.shape == (4, 3)
+    np.testing.assert_allclose(found[np.lexsort(found.T)], expected[np.lexsort(expected.T)], atol=1e-9)
+    c = Grid.from_sitk(mask).center()
+    t_pred, t_true = params_to_matrix([0, 0, 0, 20, -10, 30], c), np.eye(4)
+    assert target_registration_error(t_pred, t_true, mask) == pytest.approx(
+        target_registration_error(t_pred, t_true, expected), rel=1e-12)
 
 
 def test_worked_examples_3_5_6_7_of_the_conventions_page_exactly():

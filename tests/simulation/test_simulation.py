@@ -102,6 +102,94 @@ def test_projection_geometry_convention():
     assert v1 == pytest.approx(11.0 * geom.sdd / (geom.sod - 21.0), abs=0.3)
 
 
+def _detector_uv(grid: Grid, geom, beta: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scanner convention of test_projection_geometry_convention, written out: for every voxel centre
+    ``(X, Y, Z)`` of ``grid``, its detector coordinates at gantry angle ``beta`` (u along (-sin b, cos b, 0), v along
+    +z, mm on the detector) and its distance ``U`` from the source along the central ray; ``[nx, ny, nz]`` each."""
+    x, y, z = np.meshgrid(*(a.numpy() for a in grid_axes(grid)), indexing="ij")
+    big_u = geom.sod - (x * math.cos(beta) + y * math.sin(beta))
+    mag = geom.sdd / big_u
+    return (-x * math.sin(beta) + y * math.cos(beta)) * mag, z * mag, big_u
+
+
+def test_fan_projection_geometry_convention():
+    """Fan beam, slice by slice: a voxel at (X, Y) projects at view b to u = (-X sin b + Y cos b) sdd / U, the
+    cone beam's convention. Voxel centres and detector columns are set to meet exactly (2 mm voxels at even mm, 3 mm
+    columns at multiples of 3 mm, magnification 1.5), so a mirrored detector or a half-pixel offset moves the peak."""
+    grid = Grid.centered((33, 33, 3), (2.0, 2.0, 2.0))  # voxel centres at even mm, index 16 is 0 mm
+    geom = FanBeamGeometry(num_views=4, num_detectors=41, pixel_pitch=3.0)  # sod 800, sdd 1200: column 20 is u = 0
+    assert geom.magnification == 1.5
+    vol = torch.zeros(33, 33, 3)
+    vol[16, 17, 0] = MU  # (X, Y) = (0, 2) mm in slice 0
+    vol[15, 16, 2] = MU  # (X, Y) = (-2, 0) mm in slice 2 (slice 1 stays empty)
+    sino = fan_forward(vol, grid, geom, "cpu").double()
+    assert sino.shape == (4, 3, 41)
+    assert float(sino[:, 1].abs().max()) == 0.0
+    u_cols = geom.u_coords().numpy()
+    for k, (x, y) in ((0, (0.0, 2.0)), (2, (-2.0, 0.0))):
+        for view, beta in enumerate(geom.angles().tolist()):
+            big_u = geom.sod - x * math.cos(beta) - y * math.sin(beta)
+            u = (-x * math.sin(beta) + y * math.cos(beta)) * geom.sdd / big_u
+            col = int(np.argmin(np.abs(u_cols - u)))
+            assert abs(u_cols[col] - u) < 0.02  # the voxel projects onto a column centre
+            row = sino[view, k].numpy()
+            assert int(np.argmax(row)) == col, (k, view, u)
+            assert row[col] == pytest.approx(2.0 * MU, rel=1e-3)  # one 2 mm voxel on the ray
+            assert np.delete(row, col).max() < 0.01 * row[col]
+    # the same for the expected columns, written out: view 0 sees +Y at +u, view 1 sees -X at +u
+    assert int(sino[0, 0].argmax()) == 21 and int(sino[1, 0].argmax()) == 20
+    assert int(sino[0, 2].argmax()) == 20 and int(sino[1, 2].argmax()) == 21
+
+
+def test_fan_fbp_puts_an_off_centre_ball_where_it_is():
+    """The Sim-CT's reconstruction (fan forward projection + FBP) of a ball off the axis: at the ball, not mirrored
+    through the axis (a detector read the wrong way round in one of the two would put it near (-X, -Y))."""
+    grid = Grid.centered((32, 32, 2), (4.0, 4.0, 4.0))
+    x, y, _ = torch.meshgrid(*grid_axes(grid), indexing="ij")
+    centre = (22.0, -14.0)
+    vol = (((x - centre[0]) ** 2 + (y - centre[1]) ** 2) <= 12.0**2).float() * MU
+    geom = FanBeamGeometry(num_views=90).fitted(64.0, 4.0)
+    rec = fbp_fan(fan_forward(vol, grid, geom, "cpu"), geom, grid, "ram-lak", "cpu").double()
+    w = torch.where(rec > 0.5 * MU, rec, torch.zeros_like(rec)).sum(2)
+    found = (float((w * x[:, :, 0]).sum() / w.sum()), float((w * y[:, :, 0]).sum() / w.sum()))
+    np.testing.assert_allclose(found, centre, atol=1.0)  # a quarter voxel
+    inside = ((x - centre[0]) ** 2 + (y - centre[1]) ** 2) < 6.0**2
+    assert abs(float(rec[inside].mean()) / MU - 1.0) < 0.05
+
+
+@pytest.mark.parametrize(("kind", "use_symmetry"), [("fan", False), ("cone", True), ("cone", False)])
+def test_backprojection_of_one_detector_pixel(kind, use_symmetry):
+    """Back projection of a single detector pixel (value 1, views 0 and 1 of a 4-view full scan): every voxel gets
+    ``(sod / U)^2`` times the bilinear weight of that pixel at the voxel's own (u, v) of the convention, so the
+    voxel whose ray meets the pixel centre gets exactly 1 and its neighbours one pixel away 0. A mirrored detector
+    axis or a half-pixel offset of the sampling fails this."""
+    from monai_rigidreg.simulation import cone_backproject, fan_backproject
+
+    grid = Grid.centered((17, 17, 9), (2.0, 2.0, 2.0))  # voxel centres at even mm, index 8 is 0 mm
+    for view, (col, row) in ((0, (12, 6)), (1, (13, 5))):  # u = +6 / +9 mm, v = +3 / 0 mm
+        if kind == "fan":
+            geom = FanBeamGeometry(num_views=4, num_detectors=21, pixel_pitch=3.0)
+            data = torch.zeros(4, 9, 21, dtype=torch.float64)
+            data[view, :, col] = 1.0
+            out = fan_backproject(data, grid, geom, "cpu").double().numpy()
+        else:
+            geom = ConeBeamGeometry(num_views=4, detector_shape=(21, 11), pixel_pitch=(3.0, 3.0))
+            data = torch.zeros(4, 11, 21, dtype=torch.float64)
+            data[view, row, col] = 1.0
+            out = cone_backproject(data, grid, geom, "cpu", use_symmetry=use_symmetry).double().numpy()
+        beta = float(geom.angles()[view])
+        u, v, big_u = _detector_uv(grid, geom, beta)
+        weight = np.clip(1.0 - np.abs(u - float(geom.u_coords()[col])) / 3.0, 0.0, None)
+        if kind == "cone":
+            weight = weight * np.clip(1.0 - np.abs(v - float(geom.v_coords()[row])) / 3.0, 0.0, None)
+        expected = (geom.sod / big_u) ** 2 * weight
+        np.testing.assert_allclose(out, expected, atol=2e-5)
+        # the voxel on the pixel's ray through the centre plane (view 0: (0, 4) mm, view 1: (-6, 0) mm)
+        ix, iy = (8, 10) if view == 0 else (5, 8)
+        iz = 5 if kind == "cone" and view == 0 else 4  # v = +3 mm is z = +2 mm at magnification 1.5
+        assert out[ix, iy, iz] == pytest.approx(1.0, abs=1e-5)
+
+
 def test_rot90_view_sharing_is_exact():
     """The 4-views-at-once path (90 degree symmetry) equals the plain per-view projector and back projector."""
     from monai_rigidreg.simulation import cone_backproject

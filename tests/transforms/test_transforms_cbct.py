@@ -82,6 +82,19 @@ class TestCBCTDegradation:
         np.testing.assert_allclose(out[r < 12.0], self.img[0].numpy()[r < 12.0], atol=1.0)
         assert np.all(out[(r > 20.0) & (r < 24.0)] < -400.0)  # water beyond the FOV radius is gone
 
+    def test_fov_truncation_with_anisotropic_in_plane_spacing(self):
+        """The FOV cylinder is round in mm: x's coordinates come from x's spacing, y's from y's (1.5 mm and 3 mm
+        voxels; x and y swapped, the cut would be an ellipse, 30 mm wide along x and 15 mm along y)."""
+        img = water_phantom(size=(32, 32, 6), spacing=(1.5, 3.0, 2.5), radius=100.0)
+        t = only("fov", fov_radius=20.0, fov_edge=0.5, background=-1000.0)
+        t.set_random_state(0)
+        out = t(img)[0].numpy()
+        r = radius_map(img)
+        assert r[:, 16].max() < 24.0 < 46.0 < r[16, :].max()  # half-widths: 23.3 mm along x, 46.5 mm along y
+        np.testing.assert_allclose(out[r > 24.0], -1000.0, atol=1.0)
+        np.testing.assert_allclose(out[r < 16.0], img[0].numpy()[r < 16.0], atol=1.0)
+        assert np.all(out[r < 16.0] > -100.0)  # water and bone kept inside the radius
+
     def test_fov_half_length(self):
         t = only("fov", fov_radius=500.0, fov_edge=1.0, fov_half_length=10.0)
         out = t(self.img)[0].numpy()

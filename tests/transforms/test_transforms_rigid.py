@@ -19,7 +19,7 @@ from monai_rigidreg.core.geometry import (
     target_registration_error,
     transform_points,
 )
-from monai_rigidreg.transforms import RandRigid6DoF, RandRigid6DoFd, Rigid6DoF
+from monai_rigidreg.transforms import RandRigid6DoF, RandRigid6DoFd, Rigid6DoF, apply_rigid_motion
 
 torch.set_num_threads(1)
 
@@ -105,6 +105,19 @@ class TestRigidConvention:
         out = Rigid6DoF(params, center=c)(blob_volume(OBLIQUE, p[None]))
         expected = np.array(params_to_sitk(params, c).TransformPoint(tuple(p)))
         assert np.linalg.norm(centroid(out, OBLIQUE, expected) - expected) < 0.5
+
+    def test_apply_rigid_motion_moves_a_marker_to_its_motion_point(self):
+        """The functional form: a marker at p appears at M(p) (out(y) = img(M^-1(y))), not at M^-1(p)."""
+        p = OBLIQUE.center() + np.array([4.0, -3.0, 2.0])
+        m = params_to_matrix([3.0, -2.0, 4.0, 10.0, -8.0, 15.0], OBLIQUE.center() + np.array([5.0, 4.0, -3.0]))
+        img = blob_volume(OBLIQUE, p[None]).as_tensor()
+        out = apply_rigid_motion(img, m, OBLIQUE)
+        expected, wrong = transform_points(m, p)[0], transform_points(np.linalg.inv(m), p)[0]
+        found = centroid(out, OBLIQUE, expected)
+        assert np.linalg.norm(found - expected) < 0.5 * min(OBLIQUE.spacing)
+        assert np.linalg.norm(expected - wrong) > 8.0  # the two readings are far apart
+        assert float(out.max()) > 500.0  # the marker is there, not padding
+        assert out.shape == img.shape
 
 
 class TestRigidRegistrationPair:
