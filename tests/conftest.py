@@ -145,8 +145,9 @@ def true_motion_registrar(registrar, motion):
     flipped sign or a swapped axis in what the outputs re-express (result.json's matrices, transform.tfm, the REG,
     the couch shifts, transformix's parameters, registered.nii.gz) would not show. ``motion``: six numbers (mm,
     degrees, fixed -> moving about the CT centre), or ``motion(fixed, moving)`` giving them per pair. The result's
-    ``registered`` is set to ``None``, so the outputs resample the CBCT under the motion themselves. The returned
-    object is a ``RigidRegistrar`` (a subclass sharing the registrar's state), so ``register(model=...)`` takes it.
+    ``registered`` (made under the network's estimate) is left as it is: the outputs see that the parameters changed
+    and resample the CBCT under the motion (``RegistrationResult.registered_is_current``). The returned object is a
+    ``RigidRegistrar`` (a subclass sharing the registrar's state), so ``register(model=...)`` takes it.
     """
     motion_for = motion if callable(motion) else (lambda fixed, moving: motion)
 
@@ -154,7 +155,6 @@ def true_motion_registrar(registrar, motion):
         def __call__(self, fixed, moving, *args, **kwargs):
             result = super().__call__(fixed, moving, *args, **kwargs)
             result.params = np.asarray(motion_for(fixed, moving), dtype=np.float64).copy()
-            result.registered = None  # the registrar's resampling under its own estimate: written again
             return result
 
     wrapped = object.__new__(TrueMotion)

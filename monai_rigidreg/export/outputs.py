@@ -100,8 +100,9 @@ def write_outputs(
         step(f"transform.{transform_format}")
         write_elastix_transform(tmp / ELASTIX_PARAMETER_FILE, result.params, result.center, fixed, fill)
         step(ELASTIX_PARAMETER_FILE)
-        registered = result.registered if result.registered is not None else resample(moving, fixed, result.transform,
-                                                                                      default_value=fill)
+        # the registrar's own resampling where it was made under these parameters (params changed since: again)
+        registered = result.registered if result.registered_is_current() else resample(
+            moving, fixed, result.transform, default_value=fill)
         # registered.nii.gz is compressed (zlib, outside the GIL) in a worker while the rest is written and the QC
         # figure drawn: 0.142 -> 0.100 s for the two on a bench_speed pair (benchmarks/speed/bench_network_paths.py);
         # the worker is joined before the staged folder is moved into place or removed (with Ctrl-C and SIGTERM

@@ -21,7 +21,9 @@ class RegistrationResult:
     Attributes:
         params: ``(tx, ty, tz, rx, ry, rz)`` mm / degrees, fixed -> moving, about ``center`` (``docs/conventions.md``).
         center: rotation centre (LPS mm): the fixed image centre.
-        registered: the moving image resampled onto the fixed grid (``None`` if not asked for).
+        registered: the moving image resampled onto the fixed grid (``None`` if not asked for), under the
+            parameters the result was made with: :meth:`registered_is_current` says whether they are still
+            :attr:`params` and :attr:`center` (the outputs resample again where they are not).
         timings: seconds per stage (``load``, ``body``, ``preprocess``, ``network``, ``global_search``,
             ``second_start``, ``native_level``, ``refine``, ``confidence``, ``resample``, ``total``; those that ran).
             The global search runs in a worker thread beside the network from the identity: ``global_search`` is
@@ -60,6 +62,22 @@ class RegistrationResult:
     provenance: dict[str, Any] = field(default_factory=dict)
     couch_shift: dict[str, Any] = field(default_factory=dict)
     confidence_meaning: str = ""
+    _registered_under: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False,
+                                                                     compare=False)
+
+    def __post_init__(self) -> None:
+        if self.registered is not None:
+            self._registered_under = (np.array(self.params, dtype=np.float64),
+                                      np.array(self.center, dtype=np.float64))
+
+    def registered_is_current(self) -> bool:
+        """Whether :attr:`registered` was made under today's :attr:`params` and :attr:`center` (``False`` where
+        either was changed since, or ``registered`` was set after the result was made)."""
+        if self.registered is None or self._registered_under is None:
+            return False
+        params, center = self._registered_under
+        return bool(np.array_equal(params, np.asarray(self.params, dtype=np.float64))
+                    and np.array_equal(center, np.asarray(self.center, dtype=np.float64)))
 
     @property
     def transform(self) -> sitk.Euler3DTransform:

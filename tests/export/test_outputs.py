@@ -52,6 +52,27 @@ def result(pair, small_registrar):
     return true_motion_registrar(small_registrar, pair["params"])(fixed, moving, assess=False), fixed, moving
 
 
+def test_registered_nii_follows_the_parameters_written_beside_it(pair, small_registrar, tmp_path):
+    """The registrar's own resampling is written where it was made under the result's parameters; a result whose
+    parameters were changed since (composed with a correction, say) gets registered.nii.gz under the new ones, not a
+    stale image beside the new transform."""
+    fixed, moving = load_volume(pair["fixed"]), load_volume(pair["moving"])
+    res = small_registrar(fixed, moving, assess=False)
+    assert res.registered is not None and res.registered_is_current()
+    write_outputs(res, fixed, moving, tmp_path / "same", qc=False)
+    as_made = sitk.GetArrayFromImage(res.registered)
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(load_volume(tmp_path / "same" / "registered.nii.gz")),
+                                  as_made)
+    res.params = np.asarray(pair["params"], dtype=np.float64)
+    assert not res.registered_is_current()
+    write_outputs(res, fixed, moving, tmp_path / "moved", qc=False)
+    written = sitk.GetArrayFromImage(load_volume(tmp_path / "moved" / "registered.nii.gz"))
+    fill = float(sitk.GetArrayViewFromImage(moving).min())
+    want = sitk.GetArrayFromImage(sitk.Resample(moving, fixed, res.transform, sitk.sitkLinear, fill))
+    np.testing.assert_allclose(written, want, atol=1e-3)
+    assert np.abs(written - as_made).max() > 100.0  # the motion shows in the image
+
+
 @pytest.mark.parametrize("start", ["absent", "empty"])
 @pytest.mark.parametrize("rename", ["renameat2", "fallback"])
 def test_a_folder_another_run_filled_meanwhile_is_never_replaced(result, tmp_path, monkeypatch, start, rename):
