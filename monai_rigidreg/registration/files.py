@@ -94,7 +94,8 @@ def register_files(
     patient_warning = check_same_patient(provenance["inputs"]["fixed"], provenance["inputs"]["moving"],
                                          allow_other_patient)
     position, position_source, position_problem = _patient_position(provenance["inputs"]["fixed"], patient_position)
-    position_mismatch = _position_mismatch(provenance["inputs"]["fixed"], provenance["inputs"]["moving"])
+    position_mismatch = _position_mismatch(provenance["inputs"]["fixed"], provenance["inputs"]["moving"], position,
+                                           position_source)
     load_warnings: list[str] = []  # e.g. a DICOM series resampled over a slice gap
     fixed_img = load_volume(fixed, series_uid=fixed_series_uid, warnings=load_warnings)
     moving_img = load_volume(moving, series_uid=moving_series_uid, warnings=load_warnings)
@@ -150,22 +151,24 @@ def _patient_position(fixed_record: dict[str, Any], given: str | None) -> tuple[
     return header, "CT DICOM header", ""
 
 
-def _position_mismatch(fixed_record: dict[str, Any], moving_record: dict[str, Any]) -> str:
-    """The warning to record where the CT's and the CBCT's DICOM Patient Position (0018,5100) differ (the couch axes
-    follow the CT's, or ``--patient-position``), else ``""``; nothing is said where either lacks one.
+def _position_mismatch(fixed_record: dict[str, Any], moving_record: dict[str, Any], position: str | None,
+                       position_source: str) -> str:
+    """The warning to record where the CT's and the CBCT's DICOM Patient Position (0018,5100) differ, naming the
+    position the couch shifts use (``position`` from ``position_source``, :func:`_patient_position`; ``None``: no
+    couch shifts), else ``""``; nothing is said where either lacks one.
 
     >>> hfs, ffs = ({"format": "dicom", "patient_position": p} for p in ("HFS", "FFS"))
-    >>> _position_mismatch(hfs, ffs).split(":")[0]
-    "the CT's Patient Position is HFS and the CBCT's FFS"
+    >>> _position_mismatch(hfs, ffs, "HFS", "CT DICOM header").split(";")[0]
+    "the CT's Patient Position is HFS and the CBCT's FFS: the couch shifts use HFS (CT DICOM header)"
     """
     if fixed_record.get("format") != "dicom" or moving_record.get("format") != "dicom":
         return ""
     ct, cbct = (str(r.get("patient_position") or "").strip().upper() for r in (fixed_record, moving_record))
     if not ct or not cbct or ct == cbct:
         return ""
-    return (f"the CT's Patient Position is {ct} and the CBCT's {cbct}: the couch shifts use {ct}'s axes (or "
-            "--patient-position); a patient treated in another position than planned needs checking before the "
-            "couch is moved")
+    used = f"the couch shifts use {position} ({position_source})" if position else "no couch shifts are given"
+    return (f"the CT's Patient Position is {ct} and the CBCT's {cbct}: {used}; a patient treated in another "
+            "position than planned needs checking before the couch is moved")
 
 
 def _point(value: Any, name: str) -> tuple[float, float, float]:

@@ -62,21 +62,32 @@ class RegistrationResult:
     provenance: dict[str, Any] = field(default_factory=dict)
     couch_shift: dict[str, Any] = field(default_factory=dict)
     confidence_meaning: str = ""
-    _registered_under: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False,
-                                                                     compare=False)
+    _registered_under: tuple[np.ndarray, np.ndarray, sitk.Image] | None = field(default=None, repr=False,
+                                                                                compare=False)
 
     def __post_init__(self) -> None:
-        if self.registered is not None:
+        if self.registered is not None and self._registered_under is None:  # (dataclasses.replace keeps the record)
             self._registered_under = (np.array(self.params, dtype=np.float64),
-                                      np.array(self.center, dtype=np.float64))
+                                      np.array(self.center, dtype=np.float64), self.registered)
 
     def registered_is_current(self) -> bool:
-        """Whether :attr:`registered` was made under today's :attr:`params` and :attr:`center` (``False`` where
-        either was changed since, or ``registered`` was set after the result was made)."""
+        """Whether :attr:`registered` is the image the result was made with, under the current :attr:`params` and
+        :attr:`center` (``False`` where either was changed since, also through ``dataclasses.replace``, or another
+        image was set).
+
+        >>> import SimpleITK as sitk
+        >>> res = RegistrationResult(np.zeros(6), np.zeros(3), registered=sitk.Image(4, 4, 4, sitk.sitkFloat32))
+        >>> res.registered_is_current()
+        True
+        >>> res.params = np.array([5.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+        >>> res.registered_is_current()
+        False
+        """
         if self.registered is None or self._registered_under is None:
             return False
-        params, center = self._registered_under
-        return bool(np.array_equal(params, np.asarray(self.params, dtype=np.float64))
+        params, center, image = self._registered_under
+        return bool(image is self.registered
+                    and np.array_equal(params, np.asarray(self.params, dtype=np.float64))
                     and np.array_equal(center, np.asarray(self.center, dtype=np.float64)))
 
     @property

@@ -199,7 +199,8 @@ def test_patient_position_option_header_and_unsupported_values(pair, dicom_pair,
     result = json.loads((out / "result.json").read_text())
     assert result["couch_shift"]["patient_position"] == "HFS"
     assert result["couch_shift"]["patient_position_source"] == "CT DICOM header"
-    assert [w for w in result["details"]["warnings"] if "Patient Position is HFS and the CBCT's FFS" in w]
+    assert [w for w in result["details"]["warnings"]
+            if "Patient Position is HFS and the CBCT's FFS: the couch shifts use HFS (CT DICOM header)" in w]
 
 
 def test_a_dicom_slice_gap_is_recorded_in_result_json(pair, dicom_pair, tmp_path, caplog):

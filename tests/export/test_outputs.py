@@ -6,6 +6,7 @@ Split from the former tests/test_reliability.py (same assertions).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
@@ -63,7 +64,10 @@ def test_registered_nii_follows_the_parameters_written_beside_it(pair, small_reg
     as_made = sitk.GetArrayFromImage(res.registered)
     np.testing.assert_array_equal(sitk.GetArrayFromImage(load_volume(tmp_path / "same" / "registered.nii.gz")),
                                   as_made)
-    res.params = np.asarray(pair["params"], dtype=np.float64)
+    moved = np.asarray(pair["params"], dtype=np.float64)
+    assert not dataclasses.replace(res, params=moved).registered_is_current()  # a copy with new parameters
+    assert not dataclasses.replace(res, registered=sitk.Image(res.registered)).registered_is_current()
+    res.params = moved
     assert not res.registered_is_current()
     write_outputs(res, fixed, moving, tmp_path / "moved", qc=False)
     written = sitk.GetArrayFromImage(load_volume(tmp_path / "moved" / "registered.nii.gz"))

@@ -40,7 +40,7 @@ def test_sitk_baseline_recovers_known_motion(pair):
     res2 = register_sitk(fixed, moving, initial_params=TRUE)
     np.testing.assert_allclose(res2.params, TRUE, atol=0.3)
     # deterministic: the same call gives the same numbers (SimpleITK's seed 0, its wall clock, is refused)
-    np.testing.assert_allclose(register_sitk(fixed, moving).params, res.params, atol=1e-9)
+    np.testing.assert_allclose(register_sitk(fixed, moving).params, res.params, atol=1e-6)
     with pytest.raises(ValueError, match="wall clock"):
         register_sitk(fixed, moving, seed=0)
 
