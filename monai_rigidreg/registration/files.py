@@ -105,16 +105,10 @@ def register_files(
     result.provenance = provenance
     if load_warnings:  # in the audit trail too, before the registration's own
         result.details["warnings"] = load_warnings + result.details.get("warnings", [])
-    if patient_warning:
-        logger.warning("%s", patient_warning)
-        result.details.setdefault("warnings", []).append(patient_warning)
-    if reg_warning:
-        logger.warning("%s", reg_warning)
-        result.details.setdefault("warnings", []).append(reg_warning)
-    for problem in (position_problem, position_mismatch):
-        if problem:
-            logger.warning("%s", problem)
-            result.details.setdefault("warnings", []).append(problem)
+    for warning in (patient_warning, reg_warning, position_problem, position_mismatch):  # logged and recorded
+        if warning:
+            logger.warning("%s", warning)
+            result.details.setdefault("warnings", []).append(warning)
     result.couch_shift = couch_shift_record(result.matrix, moving_img, position, position_source, iso,
                                             position_problem)
     paths = write_outputs(result, fixed_img, moving_img, output_dir, overwrite=overwrite, qc=qc,

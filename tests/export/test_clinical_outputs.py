@@ -151,6 +151,16 @@ def test_overwrite_never_deletes_what_it_did_not_write(pair, tmp_path, monkeypat
     assert main(["register", "--fixed", pair["fixed"], "--moving", pair["moving"], "--output-dir", "."]) == 2
 
 
+def _series_with_position(series, copy, position):
+    """A copy of the DICOM series folder ``series`` at ``copy`` with Patient Position (0018,5100) ``position``."""
+    shutil.copytree(series, copy)
+    for f in copy.iterdir():
+        ds = pydicom.dcmread(f)
+        ds.PatientPosition = position
+        ds.save_as(f)
+    return copy
+
+
 def test_patient_position_option_header_and_unsupported_values(pair, dicom_pair, tmp_path):
     runs = {}
     for name, extra in (("hfs", []), ("ffs", ["--patient-position", "FFS"])):
@@ -174,25 +184,15 @@ def test_patient_position_option_header_and_unsupported_values(pair, dicom_pair,
                  str(tmp_path / "sitting"), "--patient-position", "SITTING"]) == 2
     assert not (tmp_path / "sitting").exists()
     # a header value the couch model does not support: the registration is written, the couch shifts say why not
-    ct = tmp_path / "ct_sitting"
-    shutil.copytree(dicom_pair[0], ct)
-    for f in ct.iterdir():
-        ds = pydicom.dcmread(f)
-        ds.PatientPosition = "SITTING"
-        ds.save_as(f)
+    ct = _series_with_position(dicom_pair[0], tmp_path / "ct_sitting", "SITTING")
     out = tmp_path / "from_header"
     assert main(["register", "--fixed", str(ct), "--moving", str(dicom_pair[1]), "--output-dir", str(out),
                  "--no-qc"]) == 0
     result = json.loads((out / "result.json").read_text())
     assert "unsupported patient position" in result["couch_shift"]["unavailable"]
     # the CT planned head first supine, the CBCT feet first: the CT's axes, and a warning in the audit trail
-    ct_hfs, cbct_ffs = tmp_path / "ct_hfs", tmp_path / "cbct_ffs"
-    for src, dst, value in ((dicom_pair[0], ct_hfs, "HFS"), (dicom_pair[1], cbct_ffs, "FFS")):
-        shutil.copytree(src, dst)
-        for f in dst.iterdir():
-            ds = pydicom.dcmread(f)
-            ds.PatientPosition = value
-            ds.save_as(f)
+    ct_hfs = _series_with_position(dicom_pair[0], tmp_path / "ct_hfs", "HFS")
+    cbct_ffs = _series_with_position(dicom_pair[1], tmp_path / "cbct_ffs", "FFS")
     out = tmp_path / "positions_differ"
     assert main(["register", "--fixed", str(ct_hfs), "--moving", str(cbct_ffs), "--output-dir", str(out),
                  "--no-qc"]) == 0
