@@ -7,8 +7,8 @@
 # TotalSegmentator CTs, so on those it is not held out).
 #   usage: [SHARED=../shared/data] [SHIPPED=0|1] scripts/eval_loco.sh HOLD_OUT [RUN_DIR] [RESULTS_DIR]
 # RUN_DIR defaults to training/loco/HOLD_OUT, RESULTS_DIR to benchmarks/results/loco; the exported bundle goes to
-# scratch/loco_<HOLD_OUT>_e<epoch>, the simulated pairs to bench_out/. Exit status 2 for an unknown HOLD_OUT or a
-# fold without a checkpoint. Ends with the table of every fold evaluated so far (benchmarks/accuracy/loco_table.py).
+# scratch/<RUN_DIR's parent folder name>_<HOLD_OUT>_e<epoch>, the simulated pairs to bench_out/. Exit status 2 for an
+# unknown HOLD_OUT or a fold without a checkpoint. Ends with the table of every fold evaluated so far (benchmarks/accuracy/loco_table.py).
 # About 5 minutes on 2 cores (the pairs simulated once).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -24,7 +24,7 @@ if [ -z "$ckpt" ]; then
     echo "eval_loco: no checkpoint in $RUN/models (train the fold first: scripts/train_loco.sh $HOLD)" >&2; exit 2
 fi
 epoch=$(basename "$ckpt" .pt); epoch=${epoch##*=}
-bundle="scratch/loco_${HOLD}_e${epoch}"
+bundle="scratch/$(basename "$(dirname "$RUN")")_${HOLD}_e${epoch}"  # scratch/loco_<HOLD>_e<epoch> for training/loco
 day=$(date -u +%F)
 mkdir -p "$OUT"
 python scripts/export_context_bundle.py "$ckpt" "$bundle" --passes 4 1

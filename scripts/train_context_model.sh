@@ -3,7 +3,7 @@
 # bundles/cbct_ct_rigid/docs/README.md, "Training the next weights").
 #   usage: [DATA=data] [SHARED=../shared/data] [DEVICE=cpu|cuda] [BATCH=4] [EPOCH_LENGTH=100] [WORKERS=1] \
 #          [SAMPLER_DEVICE=cpu|cuda] [CASES=12] [SIM_DEVICE=cpu|cuda] [INIT=weights.pt [INIT_PARTIAL=1]] \
-#          scripts/train_context_model.sh [RUN_DIR] [EPOCHS] [--resume]
+#          [ANATOMY_PROB=0..1] scripts/train_context_model.sh [RUN_DIR] [EPOCHS] [--resume]
 # First call: simulates the training data when it is missing (scripts/make_training_data.sh, about 8 minutes on
 # 2 cores; scripts/make_clinical_training_data.py, about 10 minutes), then trains from scratch. Resumed (3rd argument
 # --resume): continues from the newest checkpoint in RUN_DIR/models (epoch, optimizer, learning-rate schedule,
@@ -12,6 +12,8 @@
 # PREPARE_DATA_ONLY=1: the same checks and the missing data, then exit 0 without training (nothing written in RUN_DIR).
 # INIT (a new run only): start the network from these weights (a model.pt or a training checkpoint) instead of from
 # scratch; INIT_PARTIAL=1 takes only the tensors whose names and shapes match (a changed design keeping trained parts).
+# ANATOMY_PROB: the share of samples whose anatomy is the CT stretched per axis (RigidPairSampler's anatomy_prob,
+# default 0); a run's value is kept in RUN_DIR/anatomy_prob and reused on --resume (another value: exit status 2).
 # One epoch = 100 iterations of batch 4 = 400 samples; 750 epochs = 300 000 samples.
 # Held out of training (never read here): thorax_4dct_phase00_itkelastix, head_tigre_ct (and the stock Shepp-Logan
 # phantom, the validation set), unless TRAIN_CT_NAMES names them (a leave-one-CT-out fold: scripts/train_loco.sh).
@@ -79,6 +81,16 @@ elif [ -e "$RUN/history.json" ] || ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev
     echo "train_context_model: $RUN holds an earlier run: continue it with --resume, or choose another folder" >&2
     exit 2
 fi
+if [ -f "$RUN/anatomy_prob" ]; then
+    kept=$(cat "$RUN/anatomy_prob")
+    if [ -n "${ANATOMY_PROB:-}" ] && [ "$ANATOMY_PROB" != "$kept" ]; then
+        echo "train_context_model: $RUN was trained with ANATOMY_PROB=$kept, not $ANATOMY_PROB: nothing was changed" >&2
+        exit 2
+    fi
+    ANATOMY_PROB=$kept
+elif [ -n "$RESUME" ] && [ -n "${ANATOMY_PROB:-}" ] && [ "$ANATOMY_PROB" != 0 ]; then
+    echo "train_context_model: $RUN was trained without ANATOMY_PROB: nothing was changed" >&2; exit 2
+fi
 export OMP_WAIT_POLICY=PASSIVE
 if [ ! -f "$DATA/train.json" ]; then
     scripts/make_training_data.sh "$DATA" "$SHARED"
@@ -92,6 +104,7 @@ if [ "${PREPARE_DATA_ONLY:-0}" = 1 ]; then  # the checks and the data, no traini
 fi
 list() { local out="[" sep=""; for v in "$@"; do out+="$sep'$v'"; sep=","; done; echo "$out]"; }
 mkdir -p "$RUN"
+if [ -n "${ANATOMY_PROB:-}" ] && [ ! -f "$RUN/anatomy_prob" ]; then echo "$ANATOMY_PROB" > "$RUN/anatomy_prob"; fi
 python -m monai.bundle run \
     --config_file "['bundles/cbct_ct_rigid/configs/train.json','bundles/cbct_ct_rigid/configs/train_context.json']" \
     --bundle_root bundles/cbct_ct_rigid --output_dir "$RUN" --ckpt_dir "$RUN/models" \
@@ -100,5 +113,6 @@ python -m monai.bundle run \
     --epochs "$EPOCHS" --seed 0 --device "\$torch.device('$DEVICE')" --batch_size "$BATCH" \
     --epoch_length "$EPOCH_LENGTH" --num_workers "$WORKERS" --train#dataset#device "$SAMPLER_DEVICE" \
     --resume "$([ -n "$RESUME" ] && echo True || echo False)" \
+    ${ANATOMY_PROB:+--train#dataset#anatomy_prob "$ANATOMY_PROB"} \
     ${INIT:+--init_weights "$(realpath "$INIT")" --init_partial "$([ "$INIT_PARTIAL" = 1 ] && echo True || echo False)"} \
     2>&1 | tee -a "$RUN/train_log.txt"

@@ -183,3 +183,26 @@ def test_the_folds_script_takes_each_fold_up_where_it_stopped(tmp_path):
     assert bad.returncode == 2 and "my_ct" in bad.stderr and bad.stdout == ""
     zero = subprocess.run(["bash", script, "0"], env=env, capture_output=True, text=True, timeout=60)
     assert zero.returncode == 2 and "positive integer" in zero.stderr
+
+
+def test_the_training_script_keeps_a_run_s_anatomy_stretch(tmp_path):
+    """A run's ``ANATOMY_PROB`` is kept in its folder: another value is refused with exit status 2 and the folder
+    left as it was; the same value passes the checks."""
+    import subprocess
+
+    data, shared = _fake_data(tmp_path)
+    (data / "clinical").mkdir()
+    (data / "clinical" / "dataset.json").write_text("{}")
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "anatomy_prob").write_text("0.5\n")
+    base = {**os.environ, "TRAIN_CT_NAMES": " ".join(TRAINING_CTS), "SHARED": str(shared), "DATA": str(data),
+            "PREPARE_DATA_ONLY": "1"}
+    script = str(REPO / "scripts" / "train_context_model.sh")
+    other = subprocess.run(["bash", script, str(run_dir), "1"], env={**base, "ANATOMY_PROB": "0.3"},
+                           capture_output=True, text=True, timeout=60)
+    assert other.returncode == 2 and "ANATOMY_PROB=0.5, not 0.3" in other.stderr
+    assert (run_dir / "anatomy_prob").read_text() == "0.5\n" and len(list(run_dir.iterdir())) == 1
+    same = subprocess.run(["bash", script, str(run_dir), "1"], env={**base, "ANATOMY_PROB": "0.5"},
+                          capture_output=True, text=True, timeout=60)
+    assert same.returncode == 0, same.stderr

@@ -14,8 +14,10 @@ CT centre, or a simulated case's own isocentre), the scanner's field of view (a 
 after the motion so that it does not move with the anatomy, never wider than what the source CBCT covers, so its
 edge cannot give the motion away), the CT's couch (removed from the CT as the registrar removes it, or kept), the
 CBCT's couch (the moved CT couch removed, a static treatment couch painted in the scanner frame), image-domain CBCT
-degradation. Every sample is computed with a handful of ``grid_sample`` calls on volumes kept in memory, on the
-sampler's device (CPU or CUDA).
+degradation, and optionally the anatomy itself: the CT stretched about the isocentre by a random factor per axis
+(``anatomy_prob``, ``anatomy_scale``), a body of another size and shape seen by both images, so that a few real CTs
+stand for more patients (the ground truth stays rigid). Every sample is computed with a handful of ``grid_sample``
+calls on volumes kept in memory, on the sampler's device (CPU or CUDA).
 
 A sample (dict): ``moving``, ``fixed`` (``[1, *network_size]``, normalized HU), ``context`` (``[1,
 *context_size]``: the CT on the context grid, ``context_factor`` times the spacing, same centre), ``moving_fov``
@@ -259,6 +261,10 @@ class RigidPairSampler(IterableDataset):
             that a static treatment couch is painted in.
         degradation: keyword arguments of :class:`~monai_rigidreg.transforms.RandCBCTDegradation` for ``ct`` sources
             (its field-of-view cut is replaced by the sampler's); ``cbct_degradation``: for ``cbct`` sources.
+        anatomy_prob, anatomy_scale: probability that a sample's anatomy is the CT stretched about the isocentre, and
+            the range of the factor drawn per axis (L-R, A-P, S-I); the CT and the CBCT both show the stretched body
+            (for ``cbct`` sources the CBCT is stretched about the isocentre's image under ``T0``), the truth is
+            unchanged. ``0`` (the default) draws nothing from the stream for it.
         hu_range: HU window mapped to [0, 1].
         seed: the stream's seed (each DataLoader worker draws its own stream from it).
         device: where samples are computed.
@@ -283,6 +289,8 @@ class RigidPairSampler(IterableDataset):
         static_couch_prob: float = 0.5,
         degradation: Mapping[str, Any] | None = None,
         cbct_degradation: Mapping[str, Any] | None = None,
+        anatomy_prob: float = 0.0,
+        anatomy_scale: Sequence[float] = (0.85, 1.15),
         hu_range: Sequence[float] = (-1000.0, 2000.0),
         seed: int = 0,
         device: str | torch.device = "cpu",
@@ -318,6 +326,10 @@ class RigidPairSampler(IterableDataset):
                  "scatter_amplitude": (0.0, 0.04), "cupping_prob": 0.5, "cupping_depth": (0.0, 0.04),
                  "streak_prob": 0.1, "ring_prob": 0.1, "noise_prob": 0.7, "noise_std": (0.0, 25.0), "hu_prob": 0.8}
         self.degrade_cbct = RandCBCTDegradation(**{**base, **light, **(cbct_degradation or {})})
+        self.anatomy_prob = float(anatomy_prob)
+        self.anatomy_scale = (float(anatomy_scale[0]), float(anatomy_scale[1]))
+        if not 0.0 < self.anatomy_scale[0] <= self.anatomy_scale[1]:
+            raise ValueError(f"anatomy_scale must be (low, high) with 0 < low <= high, got {anatomy_scale}")
         self.hu_range = (float(hu_range[0]), float(hu_range[1]))
         self.seed = int(seed)
         self._epoch = 0
@@ -361,23 +373,25 @@ class RigidPairSampler(IterableDataset):
         t1 = a @ src.matrix  # fixed -> moving of the sample
         grid = Grid.centered(self.network_size, self.network_spacing, g)
         ctx_grid = Grid.centered(self.context_size, self.context_spacing, g)
-        eye = np.eye(4)
-        fixed = src.fixed.sample(grid, eye, AIR_HU)
-        context = src.context.sample(ctx_grid, eye, AIR_HU)
+        stretch = self._stretch(rng, g)  # the sample's anatomy: CT(stretch @ x) at CT point x
+        fixed = src.fixed.sample(grid, stretch, AIR_HU)
+        context = src.context.sample(ctx_grid, stretch, AIR_HU)
         if rng.random() < self.fixed_couch_removed_prob:
-            fixed = torch.where(src.body.sample(grid, eye) > 0.5, fixed, torch.full_like(fixed, AIR_HU))
-            context = torch.where(src.body.sample(ctx_grid, eye) > 0.5, context, torch.full_like(context, AIR_HU))
-        inv_t1 = np.linalg.inv(t1)
+            fixed = torch.where(src.body.sample(grid, stretch) > 0.5, fixed, torch.full_like(fixed, AIR_HU))
+            context = torch.where(src.body.sample(ctx_grid, stretch) > 0.5, context,
+                                  torch.full_like(context, AIR_HU))
+        # a CBCT point y shows the anatomy of the CT point stretch @ t1^-1 @ y, the source CBCT's point T0 @ that
+        to_ct = stretch @ np.linalg.inv(t1)
         if src.kind == "cbct":
-            inv_a = np.linalg.inv(a)
-            moving = src.moving.sample(grid, inv_a, AIR_HU)
-            covered = _inside(src.moving.grid, grid, inv_a, moving.device)
+            to_cbct = src.matrix @ to_ct  # T0 @ A^-1 without a stretch
+            moving = src.moving.sample(grid, to_cbct, AIR_HU)
+            covered = _inside(src.moving.grid, grid, to_cbct, moving.device)
             if src.moving_fov is not None:
-                covered &= src.moving_fov.sample(grid, inv_a) > 0.5
+                covered &= src.moving_fov.sample(grid, to_cbct) > 0.5
         else:
-            moving = src.fixed.sample(grid, inv_t1, AIR_HU)
-            covered = _inside(src.fixed.grid, grid, inv_t1, moving.device)
-        moved_body = src.body.sample(grid, inv_t1) > 0.5
+            moving = src.fixed.sample(grid, to_ct, AIR_HU)
+            covered = _inside(src.fixed.grid, grid, to_ct, moving.device)
+        moved_body = src.body.sample(grid, to_ct) > 0.5
         if rng.random() < self.moving_couch_removed_prob:
             moving = torch.where(moved_body, moving, torch.full_like(moving, AIR_HU))
         if rng.random() < self.static_couch_prob:
@@ -398,6 +412,15 @@ class RigidPairSampler(IterableDataset):
         }
 
     # -----------------------------------------------------------------------------------------------------------
+    def _stretch(self, rng: np.random.Generator, center: np.ndarray) -> np.ndarray:
+        """4x4: a scaling per axis about ``center`` (LPS mm) with probability ``anatomy_prob``, else the identity."""
+        out = np.eye(4)
+        if self.anatomy_prob > 0.0 and rng.random() < self.anatomy_prob:
+            factors = rng.uniform(*self.anatomy_scale, size=3)
+            out[:3, :3] = np.diag(1.0 / factors)  # the anatomy grows by `factors`: CT points shrink towards g
+            out[:3, 3] = center - out[:3, :3] @ center
+        return out
+
     def _field_of_view(self, covered: torch.Tensor, grid: Grid, rng: np.random.Generator) -> torch.Tensor:
         """The scanner's field of view on the grid: a cylinder about the grid's z axis cut by a slab along z, never
         reaching voxels the source does not cover (so the source's own edge stays out of view). The drawn

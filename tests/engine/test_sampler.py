@@ -44,10 +44,13 @@ def _ncc(a: torch.Tensor, b: torch.Tensor, m: torch.Tensor) -> float:
     return float((a * b).sum() / (a.norm() * b.norm() + 1e-9))
 
 
-def test_ground_truth_aligns_moving_with_fixed(ct_sources):
+@pytest.mark.parametrize("anatomy_prob", [0.0, 1.0])
+def test_ground_truth_aligns_moving_with_fixed(ct_sources, anatomy_prob):
     """Warping the CBCT by the recorded parameters (fixed -> moving about the grid centre) puts it on the CT; the
-    same parameters with the rotation's sign flipped, or with tx and ty swapped, do not."""
-    sampler = _sampler(ct_sources, motions=(MotionRange(20.0, 20.0, min_translation=10.0),))
+    same parameters with the rotation's sign flipped, or with tx and ty swapped, do not. Also where both images show
+    the CT stretched by another factor per axis (the truth stays the rigid motion)."""
+    sampler = _sampler(ct_sources, motions=(MotionRange(20.0, 20.0, min_translation=10.0),),
+                       anatomy_prob=anatomy_prob, anatomy_scale=(0.8, 1.25))
     rng = np.random.default_rng(0)
     canon = Grid.centered(SIZE, SPACING)
     for _ in range(3):
@@ -119,13 +122,41 @@ def test_stream_is_seeded_per_epoch(ct_sources):
     assert not torch.equal(first, next(iter(b))["rigid_params"]["params"])
 
 
-def test_sources_from_a_simulated_datalist(tiny_dataset):
+def test_anatomy_stretch_grows_the_body_about_the_isocentre(ct_sources):
+    """``anatomy_scale`` (1.25, 1.25): the sample's CT is the source's CT magnified 1.25 times about the isocentre
+    (the grid centre): the unstretched sample, magnified by warping, matches it; the unmagnified one and one shrunk
+    instead do not. Same stream position for both samplers (a drawn stretch consumes the same numbers)."""
+    common = {"motions": (MotionRange(5.0, 5.0),), "anatomy_prob": 1.0}
+    big = _sampler(ct_sources, anatomy_scale=(1.25, 1.25), **common).draw(np.random.default_rng(7))
+    same = _sampler(ct_sources, anatomy_scale=(1.0, 1.0), **common).draw(np.random.default_rng(7))
+    assert torch.equal(big["rigid_params"]["params"], same["rigid_params"]["params"])
+    canon = Grid.centered(SIZE, SPACING)
+
+    def zoomed(factor):
+        m = torch.eye(4, dtype=torch.float64)
+        m[:3, :3] /= factor  # output point x shows the input at x / factor
+        return warp_volume(same["fixed"][None], m[None].float(), canon, canon)[0]
+
+    mask = torch.ones_like(big["fixed"], dtype=torch.bool)
+    err = {f: float((zoomed(f) - big["fixed"]).abs().mean()) for f in (1.25, 1.0, 0.8)}
+    assert err[1.25] < 0.3 * min(err[1.0], err[0.8]), err
+    assert _ncc(zoomed(1.25), big["fixed"], mask) > 0.98
+
+
+def test_anatomy_scale_is_checked(ct_sources):
+    with pytest.raises(ValueError, match="anatomy_scale"):
+        _sampler(ct_sources, anatomy_scale=(1.2, 0.9))
+
+
+@pytest.mark.parametrize("anatomy_prob", [0.0, 1.0])
+def test_sources_from_a_simulated_datalist(tiny_dataset, anatomy_prob):
     """``cbct`` sources from ``monai-rigidreg simulate``: the sample's truth composes the extra motion with the
-    recorded one, and the samples align."""
+    recorded one, and the samples align (also with the anatomy stretched in both images)."""
     sources = load_sources(datalists=[tiny_dataset], network_spacing=SPACING[0], context_spacing=8.0,
                            isocenter_max=20.0)
     assert sources and all(s.kind == "cbct" and s.moving is not None for s in sources)
-    sampler = _sampler(sources, motions=(MotionRange(5.0, 5.0),), cbct_degradation={"prob": 0.0})
+    sampler = _sampler(sources, motions=(MotionRange(5.0, 5.0),), cbct_degradation={"prob": 0.0},
+                       anatomy_prob=anatomy_prob, anatomy_scale=(0.8, 1.25))
     d = sampler.draw(np.random.default_rng(3))
     canon = Grid.centered(SIZE, SPACING)
     p = d["rigid_params"]["params"][None].double()
