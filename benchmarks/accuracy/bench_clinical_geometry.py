@@ -122,9 +122,13 @@ CLINICAL_LABELS = {"small": "up to 40 mm / 30 deg", "large": "40-60 mm / 30-45 d
 # Pairs
 # ---------------------------------------------------------------------------------------------------------------
 def get_case(ct: Any, group: str, index: int, seed: int, folder: Path, device: str) -> tuple[Any, bool]:
-    """The cached case in ``folder``, or a new one simulated and written there. Returns ``(case, reused)``."""
+    """The cached case in ``folder`` (the same seed and acquisition as now), or a new one simulated and written
+    there. Returns ``(case, reused)``."""
+    import json
+
     from monai_rigidreg.simulation.clinical import (
         CLINICAL_GROUPS,
+        ClinicalCBCTSpec,
         case_seed,
         load_clinical_case,
         make_clinical_case,
@@ -133,7 +137,8 @@ def get_case(ct: Any, group: str, index: int, seed: int, folder: Path, device: s
 
     case = load_clinical_case(folder)
     want = case_seed(seed, ct.name, group, index)
-    if case is not None and case.record.get("seed") == want:
+    spec = json.loads(json.dumps(ClinicalCBCTSpec().to_dict()))
+    if case is not None and case.record.get("seed") == want and case.record.get("cbct") == spec:
         return case, True
     case = make_clinical_case(ct, CLINICAL_GROUPS[group], want, case_id=folder.name, device=device)
     save_clinical_case(case, folder, fixed=fixed_path(ct, folder.parent))

@@ -4,7 +4,8 @@ The chain applied by :func:`apply_cbct_physics` to ideal (monochromatic) line in
 
 1. beam hardening: ``p_bh = p - beam_hardening * p^2`` (a one-term polynomial of the polychromatic
    log signal, as a water correction that leaves bone uncorrected would give); cupping, dark streaks;
-2. primary signal ``I_p = I0 exp(-p_bh)`` photons per detector pixel;
+2. primary signal ``I_p = I0 exp(-p_bh)`` photons per detector pixel (``I0`` raised for a thick patient where the
+   automatic exposure control is on: :func:`effective_photons`);
 3. scatter ``I_s``: the primary signal blurred by a wide Gaussian (``scatter_sigma_mm`` on the detector),
    scaled so that the scatter-to-primary ratio behind the object centre is ``scatter_to_primary``
    (low frequency; lowers contrast and adds cupping since the scanner does not subtract it);
@@ -30,7 +31,7 @@ from monai_rigidreg.core.image_ops import gaussian_kernel_1d, separable_filter
 from monai_rigidreg.simulation.projector import grid_axes
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry
 
-__all__ = ["CBCTPhysics", "apply_cbct_physics", "fov_mask"]
+__all__ = ["CBCTPhysics", "apply_cbct_physics", "effective_photons", "fov_mask"]
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,11 @@ class CBCTPhysics:
             less truncates the projections on purpose.
         fov_diameter_mm: diameter of the reconstructed cylindrical field of view, mm (``None``: what the
             detector sees); voxels outside are set to air.
+        exposure_reference: automatic exposure control (``None``: off, the default). The line integral through the
+            isocentre (median over the views of the detector's centre pixel) above which the exposure is raised:
+            ``I0 = photons * exp(max(0, p_centre - exposure_reference))``, so that a patient thicker than the
+            reference keeps the reference's primary signal behind the isocentre, as a clinic's pelvis protocol
+            gives a large patient more dose (6.5 is about 325 mm of water). Never lowered below ``photons``.
     """
 
     photons: float | None = 1e5
@@ -61,6 +67,7 @@ class CBCTPhysics:
     beam_hardening: float = 0.01
     detector_fraction: float = 1.0
     fov_diameter_mm: float | None = None
+    exposure_reference: float | None = None
 
     def __post_init__(self) -> None:
         if self.photons is not None and self.photons < 0:
@@ -74,6 +81,8 @@ class CBCTPhysics:
             raise ValueError(f"detector_fraction must be in (0, 1], got {self.detector_fraction}")
         if self.fov_diameter_mm is not None and self.fov_diameter_mm <= 0:
             raise ValueError(f"fov_diameter_mm must be > 0, got {self.fov_diameter_mm}")
+        if self.exposure_reference is not None and self.exposure_reference < 0:
+            raise ValueError(f"exposure_reference must be >= 0, got {self.exposure_reference}")
 
     @classmethod
     def ideal(cls) -> CBCTPhysics:
@@ -103,11 +112,11 @@ def apply_cbct_physics(
         ``[num_views, nv, nu]`` float32 measured line integrals ``-log(I / I0)``.
     """
     p = line_integrals.to(torch.float32)
+    i0 = effective_photons(p, physics)
     if physics.beam_hardening > 0:
         p = p - physics.beam_hardening * p * p
     nu = p.shape[-1]
     if physics.photons or physics.scatter_to_primary > 0 or physics.electronic_noise > 0:
-        i0 = float(physics.photons) if physics.photons else 1e5
         primary = i0 * torch.exp(-p)
         total = primary
         if physics.scatter_to_primary > 0:
@@ -143,6 +152,30 @@ def apply_cbct_physics(
         mask[lo : lo + keep] = 1
         p = p * mask
     return p
+
+
+def effective_photons(line_integrals: torch.Tensor, physics: CBCTPhysics) -> float:
+    """The unattenuated photon count per pixel and view that :func:`apply_cbct_physics` uses for these projections:
+    ``physics.photons`` (``1e5`` where it is ``None`` or 0: the scale of scatter and electronic noise), raised by the
+    automatic exposure control where ``physics.exposure_reference`` is set (see :class:`CBCTPhysics`).
+
+    Args:
+        line_integrals: ``[num_views, nv, nu]`` ideal line integrals (unitless; the detector's centre pixel sees
+            the ray through the isocentre).
+
+    >>> import torch
+    >>> p = torch.full((4, 3, 3), 8.5)
+    >>> round(effective_photons(p, CBCTPhysics(photons=1e4, exposure_reference=6.5)))
+    73891
+    >>> effective_photons(p, CBCTPhysics(photons=1e4))
+    10000.0
+    """
+    i0 = float(physics.photons) if physics.photons else 1e5
+    if physics.exposure_reference is not None and physics.photons:
+        nv, nu = line_integrals.shape[-2:]
+        centre = float(line_integrals[:, nv // 2, nu // 2].float().median())
+        i0 *= math.exp(max(0.0, centre - float(physics.exposure_reference)))
+    return i0
 
 
 def fov_mask(

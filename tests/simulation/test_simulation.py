@@ -418,6 +418,33 @@ def test_noise_std_scales_as_inverse_sqrt_photons():
     assert std[1e4] / std[4e4] == pytest.approx(2.0, rel=0.15)
 
 
+def test_automatic_exposure_raises_the_dose_for_a_thick_patient_only():
+    """``exposure_reference``: projections whose centre ray is thicker than the reference are taken at
+    ``photons * exp(p_centre - reference)``: the measured line integrals of a 9-thick patient keep the noise of a
+    6.5-thick one (where 3e4 photons alone leave about 4 primary photons: 3 times the noise and a bias of the log),
+    and a thin patient's projections are the very same as without the control."""
+    from monai_rigidreg.simulation import apply_cbct_physics, effective_photons
+    from monai_rigidreg.simulation.scanner import ConeBeamGeometry
+
+    geom = ConeBeamGeometry(num_views=16, detector_shape=(21, 11), pixel_pitch=(3.0, 3.0))
+    base = {"photons": 3e4, "electronic_noise": 0.0, "scatter_to_primary": 0.0, "beam_hardening": 0.0}
+    on, off = CBCTPhysics(**base, exposure_reference=6.5), CBCTPhysics(**base)
+
+    def measured(p, phys):
+        return apply_cbct_physics(p, geom, phys, torch.Generator().manual_seed(4))
+
+    thick = torch.full((16, 11, 21), 9.0)
+    thick[:, :, :3] = 2.0  # the body's edge: the control reads the centre ray, not the thickest or thinnest one
+    assert effective_photons(thick, on) == pytest.approx(3e4 * math.exp(2.5))
+    assert effective_photons(thick, off) == 3e4
+    with_aec, without = measured(thick, on)[:, :, 3:], measured(thick, off)[:, :, 3:]
+    assert float(with_aec.std()) == pytest.approx(1 / math.sqrt(3e4 * math.exp(-6.5)), rel=0.15)
+    assert abs(float(with_aec.mean()) - 9.0) < 0.05
+    assert float(without.std()) > 3 * float(with_aec.std()) and abs(float(without.mean()) - 9.0) > 0.1
+    thin = torch.full((16, 11, 21), 5.0)
+    assert effective_photons(thin, on) == 3e4 and torch.equal(measured(thin, on), measured(thin, off))
+
+
 def test_noise_is_seeded():
     phys = CBCTPhysics(photons=1e4, scatter_to_primary=0.0, beam_hardening=0.0)
     a, b, c = _ball_cbct(phys, 1), _ball_cbct(phys, 1), _ball_cbct(phys, 2)

@@ -28,7 +28,7 @@ from monai_rigidreg.simulation.clinical.planning_ct import PlanningCT
 from monai_rigidreg.simulation.clinical.sampling import SmoothDeformation
 from monai_rigidreg.simulation.clinical.spec import ClinicalCBCTSpec
 from monai_rigidreg.simulation.phantoms import mu_to_hu
-from monai_rigidreg.simulation.physics import apply_cbct_physics, fov_mask
+from monai_rigidreg.simulation.physics import apply_cbct_physics, effective_photons, fov_mask
 from monai_rigidreg.simulation.projector import cone_forward, grid_axes
 from monai_rigidreg.simulation.reconstruction import fdk
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry
@@ -138,7 +138,8 @@ def simulate_clinical_cbct(
 
     Returns:
         ``(cbct, fov, info)``: the CBCT (float32 HU, grid centred on ``p``, CBCT frame), its field-of-view mask
-        (uint8, same grid) and ``{"object_grid": size, "detector": ...}``.
+        (uint8, same grid) and ``{"object_grid": size, "detector": ..., "photons": I0}`` (``I0`` after the automatic
+        exposure control, photons per pixel and view).
     """
     spec = ClinicalCBCTSpec() if spec is None else spec
     dev = resolve_device(device)
@@ -158,6 +159,7 @@ def simulate_clinical_cbct(
                                          2 * math.ceil(_detector_half_height(spec) / pitch) + 2))
     proj = cone_forward(obj, obj_grid, geom, dev)
     del obj
+    photons = effective_photons(proj, spec.physics)
     gen = torch.Generator(device=dev).manual_seed(int(seed))
     proj = apply_cbct_physics(proj, geom, spec.physics, gen)
     scanner_grid = spec.grid()
@@ -171,5 +173,6 @@ def simulate_clinical_cbct(
     fov_img = out_grid.apply_to(sitk.GetImageFromArray(
         np.ascontiguousarray(fov.cpu().numpy().transpose(2, 1, 0).astype(np.uint8))))
     info = {"object_grid": list(obj_grid.size), "object_spacing_mm": spec.spacing,
-            "detector": [int(v) for v in geom.detector_shape], "detector_pitch_mm": list(geom.pixel_pitch)}
+            "detector": [int(v) for v in geom.detector_shape], "detector_pitch_mm": list(geom.pixel_pitch),
+            "photons": photons}
     return cbct, fov_img, info

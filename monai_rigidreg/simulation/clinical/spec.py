@@ -22,9 +22,10 @@ from monai_rigidreg.simulation.physics import CBCTPhysics
 __all__ = ["CLINICAL_PHYSICS", "ClinicalCBCTSpec", "ClinicalGroup", "CLINICAL_GROUPS", "case_seed"]
 
 
-CLINICAL_PHYSICS = CBCTPhysics(photons=3e4, scatter_to_primary=0.5, beam_hardening=0.02)
+CLINICAL_PHYSICS = CBCTPhysics(photons=3e4, scatter_to_primary=0.5, beam_hardening=0.02, exposure_reference=6.5)
 """CBCT degradations of the clinical pairs: those of ``benchmarks/accuracy/bench_real_ct.py`` (noisy on-board
-imager)."""
+imager), with the exposure raised for patients thicker than about 325 mm of water at the isocentre (without it a large
+pelvis, whose whole body is in the beam, is photon-starved to a CBCT that shows no anatomy)."""
 
 
 @dataclass(frozen=True)
