@@ -20,6 +20,7 @@ Usage::
 from __future__ import annotations
 
 import json
+import itertools
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -80,7 +81,11 @@ def parse_clinical(text: str) -> dict[str, float | str]:
         out.update(n=float(cells[2]), mean_mm=float(cells[3]), median_mm=float(cells[4]),
                    success=float(cells[5].rstrip("%")) / 100.0)
     failed = text.split("\nnetwork-regression: ", 1)
-    misses = _FAILED.findall(failed[1].split("\n\n", 1)[0]) if len(failed) == 2 else []
+    misses = []
+    if len(failed) == 2:  # its list: the indented lines under its header, up to the next method's header
+        listed = failed[1].split("\n")[1:]
+        section = "\n".join(line for line in itertools.takewhile(lambda x: x.startswith("  "), listed))
+        misses = _FAILED.findall(section)
     for group in ("small", "large"):
         row = _row_cells(text, group, "network-regression")
         if row is not None:
@@ -89,7 +94,7 @@ def parse_clinical(text: str) -> dict[str, float | str]:
             out[f"{group}_under5"] = f"{n - over5} of {n}"
     own = text.split(_UNDER5_HEAD, 1)
     if len(own) == 2:
-        for label, k, n in _UNDER5.findall(own[1]):
+        for label, k, n in _UNDER5.findall(own[1].lstrip("\n").split("\n\n", 1)[0]):  # its own lines only
             out["small_under5" if label.startswith("up to") else "large_under5"] = f"{k} of {n}"
     return out
 

@@ -56,6 +56,25 @@ def test_the_clinical_counts_under_5_mm_leave_out_only_the_failures_of_5_mm_or_m
     assert c["small_under5"] == "4 of 4" and c["large_under5"] == "2 of 4"
 
 
+def test_the_clinical_counts_read_the_network_alone_s_lines_in_a_report_of_several_methods():
+    """A report of ``--methods network-regression network``: the next method's failure list follows without a blank
+    line, and the default path's targets repeat the same labels below the network's own count; neither is read as
+    the network alone's."""
+    own = ("The learned network alone (network-regression), TRE under 5 mm:\n\n"
+           "- up to 40 mm / 30 deg: 2 of 4 = 50% (target >= 95 %): NOT MET\n"
+           "- 40-60 mm / 30-45 deg: 1 of 4 = 25% (target >= 80 %): NOT MET\n\n"
+           "Targets of issue 15 (held-out CTs, network = the default path):\n\n"
+           "- up to 40 mm / 30 deg: 0 of 4 under 2 mm TRE (target 100 %): NOT MET\n\n")
+    both = CLINICAL.replace("Failed cases", own + "Failed cases").replace(
+        "\nRun\n", "network: 2 of 8 failed\n  - ct_a small_000: TRE 40.00 mm (identity 26.97)\n"
+        "  - ct_a large_000: TRE 60.00 mm (identity 64.78)\n\nRun\n")
+    c = parse_clinical(both)
+    assert c["small_under5"] == "2 of 4" and c["large_under5"] == "1 of 4"
+    listed = both.replace(own, "")  # without the report's own count: the network alone's failures only
+    c = parse_clinical(listed)
+    assert c["small_under5"] == "3 of 4" and c["large_under5"] == "3 of 4"
+
+
 def test_the_table_takes_each_fold_s_newest_epoch_and_says_whether_the_shipped_network_saw_the_ct(tmp_path):
     res, runs = tmp_path / "loco", tmp_path / "runs"
     res.mkdir()
