@@ -20,7 +20,7 @@ _MODULES = {
     "pair": ("simulate_pair",),
     "phantoms": ("MU_WATER", "PHANTOMS", "Shape", "ct_to_mu", "hu_to_mu", "load_ct", "make_phantom", "mu_to_hu",
                  "random_phantom_shapes", "shepp_logan_shapes", "voxelize"),
-    "physics": ("CBCTPhysics", "apply_cbct_physics", "effective_photons", "fov_mask"),
+    "physics": ("CBCTPhysics", "apply_cbct_physics", "centre_line_integral", "effective_photons", "fov_mask"),
     "projector": ("cone_backproject", "cone_forward", "fan_backproject", "fan_forward"),
     "protocols": ("PROTOCOLS", "MotionCase", "paper_cases", "protocol_cases", "random_cases"),
     "reconstruction": ("FILTERS", "fbp_fan", "fdk", "ramp_filter"),

@@ -31,7 +31,7 @@ from monai_rigidreg.core.image_ops import gaussian_kernel_1d, separable_filter
 from monai_rigidreg.simulation.projector import grid_axes
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry
 
-__all__ = ["CBCTPhysics", "apply_cbct_physics", "effective_photons", "fov_mask"]
+__all__ = ["CBCTPhysics", "apply_cbct_physics", "centre_line_integral", "effective_photons", "fov_mask"]
 
 
 @dataclass(frozen=True)
@@ -172,10 +172,15 @@ def effective_photons(line_integrals: torch.Tensor, physics: CBCTPhysics) -> flo
     """
     i0 = float(physics.photons) if physics.photons else 1e5
     if physics.exposure_reference is not None and physics.photons:
-        nv, nu = line_integrals.shape[-2:]
-        centre = float(line_integrals[:, nv // 2, nu // 2].float().median())
-        i0 *= math.exp(max(0.0, centre - float(physics.exposure_reference)))
+        i0 *= math.exp(max(0.0, centre_line_integral(line_integrals) - float(physics.exposure_reference)))
     return i0
+
+
+def centre_line_integral(line_integrals: torch.Tensor) -> float:
+    """The median over the views of the detector's centre pixel, ``[num_views, nv, nu]`` -> unitless: how thick the
+    patient is along the ray through the isocentre (about 0.02 per mm of water)."""
+    nv, nu = line_integrals.shape[-2:]
+    return float(line_integrals[:, nv // 2, nu // 2].float().median())
 
 
 def fov_mask(

@@ -106,6 +106,26 @@ def test_ground_truth_warps_the_cbct_back_onto_the_ct(planning_ct):
         assert bad < good - 0.2, (wrong, bad, good)
 
 
+def test_image_quality_ncc_reads_the_truth_and_the_record_gives_the_exposure(planning_ct):
+    """``bench_clinical_image_quality``'s NCC: the CT under the true motion matches the (ideal) CBCT, under the
+    inverse motion or the identity it does not; the record gives the ray through the isocentre and the photons."""
+    from benchmarks.simulation.bench_clinical_image_quality import truth_ncc
+
+    ct = planning_ct
+    p = ct.center + np.array([-20.0, 10.0, 5.0])
+    motion = np.array([15.0, -10.0, 6.0, 8.0, -6.0, 12.0])
+    cbct, fov, info = simulate_clinical_cbct(ct, p, motion, spec=SPEC, seed=0)
+    m = params_to_matrix(motion, p)
+    image = sitk.Cast(ct.image, sitk.sitkFloat32)
+    right = truth_ncc(image, cbct, fov, m)
+    assert right > 0.9
+    assert truth_ncc(image, cbct, fov, np.linalg.inv(m)) < right - 0.3
+    assert truth_ncc(image, cbct, fov, np.eye(4)) < right - 0.3
+    # the body is an ellipse of 200 x 160 mm: between about 160 and 200 mm of soft tissue through the isocentre
+    assert 0.02 * 140 < info["centre_line_integral"] < 0.02 * 260
+    assert info["photons"] == 1e5  # ideal physics: the scale of the (absent) noise
+
+
 def test_isocenter_and_motion_sampling(planning_ct):
     ct = planning_ct
     rng = np.random.default_rng(0)

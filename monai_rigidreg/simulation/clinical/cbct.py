@@ -28,7 +28,7 @@ from monai_rigidreg.simulation.clinical.planning_ct import PlanningCT
 from monai_rigidreg.simulation.clinical.sampling import SmoothDeformation
 from monai_rigidreg.simulation.clinical.spec import ClinicalCBCTSpec
 from monai_rigidreg.simulation.phantoms import mu_to_hu
-from monai_rigidreg.simulation.physics import apply_cbct_physics, effective_photons, fov_mask
+from monai_rigidreg.simulation.physics import apply_cbct_physics, centre_line_integral, effective_photons, fov_mask
 from monai_rigidreg.simulation.projector import cone_forward, grid_axes
 from monai_rigidreg.simulation.reconstruction import fdk
 from monai_rigidreg.simulation.scanner import ConeBeamGeometry
@@ -138,8 +138,9 @@ def simulate_clinical_cbct(
 
     Returns:
         ``(cbct, fov, info)``: the CBCT (float32 HU, grid centred on ``p``, CBCT frame), its field-of-view mask
-        (uint8, same grid) and ``{"object_grid": size, "detector": ..., "photons": I0}`` (``I0`` after the automatic
-        exposure control, photons per pixel and view).
+        (uint8, same grid) and ``{"object_grid": size, "detector": ..., "photons": I0, "centre_line_integral": p}``
+        (``I0`` after the automatic exposure control, photons per pixel and view; ``p`` the ideal line integral
+        through the isocentre, :func:`~monai_rigidreg.simulation.physics.centre_line_integral`).
     """
     spec = ClinicalCBCTSpec() if spec is None else spec
     dev = resolve_device(device)
@@ -159,7 +160,7 @@ def simulate_clinical_cbct(
                                          2 * math.ceil(_detector_half_height(spec) / pitch) + 2))
     proj = cone_forward(obj, obj_grid, geom, dev)
     del obj
-    photons = effective_photons(proj, spec.physics)
+    photons, p_centre = effective_photons(proj, spec.physics), centre_line_integral(proj)
     gen = torch.Generator(device=dev).manual_seed(int(seed))
     proj = apply_cbct_physics(proj, geom, spec.physics, gen)
     scanner_grid = spec.grid()
@@ -174,5 +175,5 @@ def simulate_clinical_cbct(
         np.ascontiguousarray(fov.cpu().numpy().transpose(2, 1, 0).astype(np.uint8))))
     info = {"object_grid": list(obj_grid.size), "object_spacing_mm": spec.spacing,
             "detector": [int(v) for v in geom.detector_shape], "detector_pitch_mm": list(geom.pixel_pitch),
-            "photons": photons}
+            "photons": photons, "centre_line_integral": p_centre}
     return cbct, fov_img, info
