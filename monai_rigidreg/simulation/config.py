@@ -195,9 +195,9 @@ class SimulationConfig:
     def identity(self) -> dict[str, Any]:
         """The fields that define the dataset (everything but the runtime ones), JSON-able.
 
-        The fields of 0.5 are left out where they change nothing (``motion`` when not given, ``ct_frame`` for a
-        built-in phantom), so a dataset of an earlier release resumes; a CT's dataset of an earlier release was
-        centred on the origin and differs in ``ct_frame``.
+        The fields added since 0.5 are left out where they change nothing (``motion`` when not given, ``ct_frame``
+        for a built-in phantom, the physics' ``exposure_reference`` when off), so a dataset of an earlier release
+        resumes; a CT's dataset of an earlier release was centred on the origin and differs in ``ct_frame``.
         """
         d = asdict(self)
         for k in _RUNTIME_KEYS:
@@ -206,6 +206,8 @@ class SimulationConfig:
             d.pop("motion")
         if self.phantom in PHANTOMS:
             d.pop("ct_frame")
+        if isinstance(d.get("physics"), dict) and d["physics"].get("exposure_reference") is None:
+            d["physics"].pop("exposure_reference", None)
         return json.loads(json.dumps(d))
 
 

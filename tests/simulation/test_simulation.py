@@ -581,6 +581,14 @@ def test_dataset_deterministic_resumable_and_monai_loadable(tmp_path):
     again = sitk.GetArrayFromImage(_read(p1.parent / items[2]["moving"]))
     assert np.array_equal(again, sitk.GetArrayFromImage(_read(p2.parent / items[2]["moving"])))
 
+    # a dataset written before the physics had the exposure control (the field absent) resumes; one with it on
+    # is another configuration
+    meta_path = p1.parent / "simulation.json"
+    assert "exposure_reference" not in json.loads(meta_path.read_text())["config"]["physics"]
+    simulate_dataset(tmp_path / "a", num_objects=2, **kw)
+    with pytest.raises(OutputExistsError, match="physics"):
+        simulate_dataset(tmp_path / "a", num_objects=2, **{**kw, "physics": {"exposure_reference": 6.5}})
+
     # another configuration in the same directory is refused, unless overwrite
     with pytest.raises(OutputExistsError, match="seed"):
         simulate_dataset(tmp_path / "a", num_objects=2, **{**kw, "seed": 8})
