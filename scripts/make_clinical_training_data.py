@@ -40,9 +40,12 @@ from monai_rigidreg.simulation.clinical import (
 
 
 def case_spec(rng: np.random.Generator) -> ClinicalCBCTSpec:
-    """A randomized acquisition: physics, distances and field of view (2.5 mm voxels, 260 x 260 x 160 mm grid)."""
+    """A randomized acquisition: physics, distances and field of view (2.5 mm voxels, 260 x 260 x 160 mm grid), the
+    exposure raised for a thick patient as in the benchmark's pairs (``CLINICAL_PHYSICS.exposure_reference``; pairs
+    written before 2026-12-06 were simulated without it and are kept: delete a CT's folders to simulate them again)."""
     physics = replace(
         CLINICAL_PHYSICS,
+        exposure_reference=CLINICAL_PHYSICS.exposure_reference,
         photons=float(10 ** rng.uniform(4.0, 5.5)),
         scatter_to_primary=float(rng.uniform(0.1, 0.8)),
         beam_hardening=float(rng.uniform(0.0, 0.04)),

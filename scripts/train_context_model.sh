@@ -81,14 +81,15 @@ elif [ -e "$RUN/history.json" ] || ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev
     echo "train_context_model: $RUN holds an earlier run: continue it with --resume, or choose another folder" >&2
     exit 2
 fi
+same_number() { awk -v a="$1" -v b="$2" 'BEGIN { exit !(a + 0 == b + 0) }'; }
 if [ -f "$RUN/anatomy_prob" ]; then
     kept=$(cat "$RUN/anatomy_prob")
-    if [ -n "${ANATOMY_PROB:-}" ] && [ "$ANATOMY_PROB" != "$kept" ]; then
+    if [ -n "${ANATOMY_PROB:-}" ] && ! same_number "$ANATOMY_PROB" "$kept"; then
         echo "train_context_model: $RUN was trained with ANATOMY_PROB=$kept, not $ANATOMY_PROB: nothing was changed" >&2
         exit 2
     fi
     ANATOMY_PROB=$kept
-elif [ -n "$RESUME" ] && [ -n "${ANATOMY_PROB:-}" ] && [ "$ANATOMY_PROB" != 0 ]; then
+elif [ -n "$RESUME" ] && [ -n "${ANATOMY_PROB:-}" ] && ! same_number "$ANATOMY_PROB" 0; then
     echo "train_context_model: $RUN was trained without ANATOMY_PROB: nothing was changed" >&2; exit 2
 fi
 export OMP_WAIT_POLICY=PASSIVE

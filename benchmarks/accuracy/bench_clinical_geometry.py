@@ -124,11 +124,8 @@ CLINICAL_LABELS = {"small": "up to 40 mm / 30 deg", "large": "40-60 mm / 30-45 d
 def get_case(ct: Any, group: str, index: int, seed: int, folder: Path, device: str) -> tuple[Any, bool]:
     """The cached case in ``folder`` (the same seed and acquisition as now), or a new one simulated and written
     there. Returns ``(case, reused)``."""
-    import json
-
     from monai_rigidreg.simulation.clinical import (
         CLINICAL_GROUPS,
-        ClinicalCBCTSpec,
         case_seed,
         load_clinical_case,
         make_clinical_case,
@@ -137,12 +134,21 @@ def get_case(ct: Any, group: str, index: int, seed: int, folder: Path, device: s
 
     case = load_clinical_case(folder)
     want = case_seed(seed, ct.name, group, index)
-    spec = json.loads(json.dumps(ClinicalCBCTSpec().to_dict()))
-    if case is not None and case.record.get("seed") == want and case.record.get("cbct") == spec:
+    if case is not None and case.record.get("seed") == want and case.record.get("cbct") == current_acquisition():
         return case, True
     case = make_clinical_case(ct, CLINICAL_GROUPS[group], want, case_id=folder.name, device=device)
     save_clinical_case(case, folder, fixed=fixed_path(ct, folder.parent))
     return load_clinical_case(folder), False  # as a resumed run reads it (int16 HU): the same numbers either way
+
+
+def current_acquisition() -> dict[str, Any]:
+    """The clinical pairs' acquisition as a case records it (``case.json``'s ``cbct``): a cached pair with another
+    one (e.g. simulated before the exposure control) is not this benchmark's pair."""
+    import json
+
+    from monai_rigidreg.simulation.clinical import ClinicalCBCTSpec
+
+    return json.loads(json.dumps(ClinicalCBCTSpec().to_dict()))
 
 
 def fixed_path(ct: Any, ct_dir: Path) -> Path:
@@ -260,7 +266,9 @@ def pairs_parser(description: str, groups: list[str]) -> argparse.ArgumentParser
 
 def cached_pairs(pairs_dir: Path, groups: Any, out: Tee) -> Iterator[tuple[str, str, Any, Any]]:
     """The pairs cached in ``pairs_dir`` (``<ct>/<group>_<nnn>/``) of the given groups, each CT loaded once:
-    ``(ct name, pair name, planning CT, case)``; a CT missing from the shared data is reported and skipped."""
+    ``(ct name, pair name, planning CT, case)``; a CT missing from the shared data, or a pair simulated with another
+    acquisition than :func:`current_acquisition` (run ``bench_clinical_geometry`` on it again), is reported and
+    skipped."""
     from monai_rigidreg.simulation.clinical import load_clinical_case, load_planning_ct
 
     for ct_dir in sorted(p for p in pairs_dir.iterdir() if p.is_dir()):
@@ -272,7 +280,10 @@ def cached_pairs(pairs_dir: Path, groups: Any, out: Tee) -> Iterator[tuple[str, 
             if case_dir.name.rsplit("_", 1)[0] not in groups:
                 continue
             case = load_clinical_case(case_dir)
-            if case is not None:
+            if case is not None and case.record.get("cbct") != current_acquisition():
+                out(f"skipped {ct_dir.name}/{case_dir.name}: simulated with another acquisition than the current "
+                    "one (bench_clinical_geometry with this --output-dir simulates it again)")
+            elif case is not None:
                 yield ct_dir.name, case_dir.name, ct, case
 
 

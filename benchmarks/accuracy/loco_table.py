@@ -19,8 +19,8 @@ Usage::
 
 from __future__ import annotations
 
-import json
 import itertools
+import json
 import re
 from dataclasses import dataclass, field
 from pathlib import Path

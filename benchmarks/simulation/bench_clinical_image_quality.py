@@ -3,9 +3,10 @@ the NCC between the CBCT and the planning CT under the true motion, with the phy
 
 A CBCT simulated from the whole body in the beam can be photon-starved or scatter-dominated where the patient is
 large (every registration method then fails on it, which says nothing about the methods). For each CT this script
-re-simulates its first clinical pair (``bench_clinical_geometry``'s pairs: seed 1500, the same isocentre, motion and
-noise seed) with the physics as configured (``ClinicalCBCTSpec``'s, the automatic exposure control included),
-without the exposure control, ideal, and with one degradation alone; and reads every cached pair's CBCT as it is.
+re-simulates one rigid clinical pair (``bench_clinical_geometry``'s pairs: the same isocentre and motion; noise seed
+1, not the pair's own) with the physics as configured (``ClinicalCBCTSpec``'s, the automatic exposure control
+included), without the exposure control, ideal, and with one degradation alone; and reads every cached rigid pair's
+CBCT as it is (deformed pairs are left out: their truth is not the rigid motion).
 
 * ``p_centre``: the median over the views of the ideal line integral of the detector's centre pixel (the ray through
   the isocentre); the exposure control raises the photon count by ``exp(p_centre - exposure_reference)``.
@@ -90,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
             out(f"| {ct.name} | no pair {case_dir} (run bench_clinical_geometry first) |")
             continue
         case = json.loads((case_dir / "case.json").read_text())
+        if case.get("deformation") is not None:
+            out(f"| {ct.name} | {args.case} is a deformed pair: choose a rigid one (--case) |")
+            continue
         matrix = np.asarray(case["matrix"], dtype=np.float64)
         nccs, info = [], {}
         for name, phys in variants.items():
@@ -100,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
         cached = []
         for pair in sorted(p for p in folder.iterdir() if (p / "case.json").is_file()):
             rec = json.loads((pair / "case.json").read_text())
+            if rec.get("deformation") is not None:
+                continue
             cached.append(truth_ncc(ct_image, sitk.ReadImage(str(pair / "cbct.nii.gz"), sitk.sitkFloat32),
                                     sitk.ReadImage(str(pair / "cbct_fov.nii.gz")), np.asarray(rec["matrix"])))
         out(f"| {ct.name} | {info['centre_line_integral']:.2f} | {info['photons']:.3g} | "

@@ -327,6 +327,8 @@ class RigidPairSampler(IterableDataset):
                  "streak_prob": 0.1, "ring_prob": 0.1, "noise_prob": 0.7, "noise_std": (0.0, 25.0), "hu_prob": 0.8}
         self.degrade_cbct = RandCBCTDegradation(**{**base, **light, **(cbct_degradation or {})})
         self.anatomy_prob = float(anatomy_prob)
+        if not 0.0 <= self.anatomy_prob <= 1.0:
+            raise ValueError(f"anatomy_prob must be in [0, 1], got {anatomy_prob}")
         self.anatomy_scale = (float(anatomy_scale[0]), float(anatomy_scale[1]))
         if not 0.0 < self.anatomy_scale[0] <= self.anatomy_scale[1]:
             raise ValueError(f"anatomy_scale must be (low, high) with 0 < low <= high, got {anatomy_scale}")

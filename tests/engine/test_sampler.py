@@ -143,6 +143,24 @@ def test_anatomy_stretch_grows_the_body_about_the_isocentre(ct_sources):
     assert _ncc(zoomed(1.25), big["fixed"], mask) > 0.98
 
 
+def test_anatomy_stretch_moves_the_body_masks_with_the_body(ct_sources):
+    """With the couch removed from both images (everything outside the body mask set to air), a stretched body keeps
+    all its tissue: the masks are stretched as the images are (else the body's edge, 1.25 times further out, would be
+    cut to air); and the fixed image's mask is its own, not the moving image's."""
+    common = {"motions": (MotionRange(15.0, 15.0, min_translation=5.0),), "anatomy_prob": 1.0,
+              "anatomy_scale": (1.25, 1.25)}
+    kept = _sampler(ct_sources, **common).draw(np.random.default_rng(11))
+    cut = _sampler(ct_sources, fixed_couch_removed_prob=1.0, moving_couch_removed_prob=1.0,
+                   **common).draw(np.random.default_rng(11))
+    assert torch.equal(kept["rigid_params"]["params"], cut["rigid_params"]["params"])
+    tissue_hu = (-300.0 + 1000.0) / 3000.0  # normalized
+    for key in ("fixed", "moving"):
+        tissue = kept[key] > tissue_hu
+        assert int(tissue.sum()) > 1000
+        lost = float((cut[key][tissue] < tissue_hu).float().mean())
+        assert lost < 0.005, (key, lost)
+
+
 def test_anatomy_scale_is_checked(ct_sources):
     with pytest.raises(ValueError, match="anatomy_scale"):
         _sampler(ct_sources, anatomy_scale=(1.2, 0.9))

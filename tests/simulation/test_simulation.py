@@ -419,10 +419,11 @@ def test_noise_std_scales_as_inverse_sqrt_photons():
 
 
 def test_automatic_exposure_raises_the_dose_for_a_thick_patient_only():
-    """``exposure_reference``: projections whose centre ray is thicker than the reference are taken at
-    ``photons * exp(p_centre - reference)``: the measured line integrals of a 9-thick patient keep the noise of a
-    6.5-thick one (where 3e4 photons alone leave about 4 primary photons: 3 times the noise and a bias of the log),
-    and a thin patient's projections are the very same as without the control."""
+    """``exposure_reference``: projections whose ray through the isocentre (the median over the views of the
+    detector's centre pixel) is thicker than the reference are taken at ``photons * exp(p_centre - reference)``:
+    the measured line integrals of a 9-thick patient keep the noise of a 6.5-thick one (where 3e4 photons alone leave
+    about 4 primary photons: 3 times the noise and a bias of the log), and a thin patient's projections are the
+    very same as without the control. Not the thickest ray (12), not the first view's or the mean over the views."""
     from monai_rigidreg.simulation import apply_cbct_physics, effective_photons
     from monai_rigidreg.simulation.scanner import ConeBeamGeometry
 
@@ -434,10 +435,15 @@ def test_automatic_exposure_raises_the_dose_for_a_thick_patient_only():
         return apply_cbct_physics(p, geom, phys, torch.Generator().manual_seed(4))
 
     thick = torch.full((16, 11, 21), 9.0)
-    thick[:, :, :3] = 2.0  # the body's edge: the control reads the centre ray, not the thickest or thinnest one
+    thick[:, :, :3] = 2.0  # the body's edge
+    thick[:, :, -3:] = 12.0  # thicker off the isocentre
+    thick[::4, 5, 10] = 4.0  # the centre ray thinner in 4 of 16 views (view 0 among them): the median stays 9
     assert effective_photons(thick, on) == pytest.approx(3e4 * math.exp(2.5))
     assert effective_photons(thick, off) == 3e4
-    with_aec, without = measured(thick, on)[:, :, 3:], measured(thick, off)[:, :, 3:]
+    region = torch.zeros(16, 11, 21, dtype=torch.bool)
+    region[:, :, 3:-3] = True
+    region[:, 5, 10] = False  # the 9-thick pixels
+    with_aec, without = measured(thick, on)[region], measured(thick, off)[region]
     assert float(with_aec.std()) == pytest.approx(1 / math.sqrt(3e4 * math.exp(-6.5)), rel=0.15)
     assert abs(float(with_aec.mean()) - 9.0) < 0.05
     assert float(without.std()) > 3 * float(with_aec.std()) and abs(float(without.mean()) - 9.0) > 0.1

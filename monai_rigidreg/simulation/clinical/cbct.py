@@ -139,7 +139,8 @@ def simulate_clinical_cbct(
     Returns:
         ``(cbct, fov, info)``: the CBCT (float32 HU, grid centred on ``p``, CBCT frame), its field-of-view mask
         (uint8, same grid) and ``{"object_grid": size, "detector": ..., "photons": I0, "centre_line_integral": p}``
-        (``I0`` after the automatic exposure control, photons per pixel and view; ``p`` the ideal line integral
+        (``I0`` after the automatic exposure control, photons per pixel and view, ``None`` without quantum noise;
+        ``p`` the ideal line integral
         through the isocentre, :func:`~monai_rigidreg.simulation.physics.centre_line_integral`).
     """
     spec = ClinicalCBCTSpec() if spec is None else spec
@@ -160,7 +161,8 @@ def simulate_clinical_cbct(
                                          2 * math.ceil(_detector_half_height(spec) / pitch) + 2))
     proj = cone_forward(obj, obj_grid, geom, dev)
     del obj
-    photons, p_centre = effective_photons(proj, spec.physics), centre_line_integral(proj)
+    photons = effective_photons(proj, spec.physics) if spec.physics.photons else None  # None: no quantum noise
+    p_centre = centre_line_integral(proj)
     gen = torch.Generator(device=dev).manual_seed(int(seed))
     proj = apply_cbct_physics(proj, geom, spec.physics, gen)
     scanner_grid = spec.grid()
