@@ -6,7 +6,8 @@ large (every registration method then fails on it, which says nothing about the 
 re-simulates one rigid clinical pair (``bench_clinical_geometry``'s pairs: the same isocentre and motion; noise seed
 1, not the pair's own) with the physics as configured (``ClinicalCBCTSpec``'s, the automatic exposure control
 included), without the exposure control, ideal, and with one degradation alone; and reads every cached rigid pair's
-CBCT as it is (deformed pairs are left out: their truth is not the rigid motion).
+CBCT as it is (deformed pairs are left out: their truth is not the rigid motion; so are pairs simulated with another
+acquisition than the current one).
 
 * ``p_centre``: the median over the views of the ideal line integral of the detector's centre pixel (the ray through
   the isocentre); the exposure control raises the photon count by ``exp(p_centre - exposure_reference)``.
@@ -30,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.accuracy.bench_clinical_geometry import current_acquisition
 from benchmarks.bench_common import Tee, end_run, find_cts, script_parser, set_threads, start_run
 
 
@@ -101,15 +103,20 @@ def main(argv: list[str] | None = None) -> int:
                                                     replace(spec, physics=phys), 1, "cpu")
             nccs.append(truth_ncc(ct_image, cbct, fov, matrix))
             info = got if name == "as configured" else info
-        cached = []
+        cached, other = [], 0
         for pair in sorted(p for p in folder.iterdir() if (p / "case.json").is_file()):
             rec = json.loads((pair / "case.json").read_text())
             if rec.get("deformation") is not None:
                 continue
+            if rec.get("cbct") != current_acquisition():
+                other += 1  # simulated with another acquisition (e.g. before the exposure control)
+                continue
             cached.append(truth_ncc(ct_image, sitk.ReadImage(str(pair / "cbct.nii.gz"), sitk.sitkFloat32),
                                     sitk.ReadImage(str(pair / "cbct_fov.nii.gz")), np.asarray(rec["matrix"])))
         out(f"| {ct.name} | {info['centre_line_integral']:.2f} | {info['photons']:.3g} | "
-            + " | ".join(f"{v:.3f}" for v in nccs) + f" | {min(cached):.3f}-{max(cached):.3f} ({len(cached)}) |")
+            + " | ".join(f"{v:.3f}" for v in nccs) + " | "
+            + (f"{min(cached):.3f}-{max(cached):.3f} ({len(cached)})" if cached else "none")
+            + (f"; {other} of another acquisition left out" if other else "") + " |")
         print(f"{ct.name} done", file=sys.stderr, flush=True)
     out()
     end_run(out, monitor, t0, args.results, [f"pairs read from {args.pairs_dir} (seed as simulated there)"])
