@@ -145,6 +145,22 @@ def set_threads(threads: int) -> None:
 
 
 
+def start_cpu_run(ap: argparse.ArgumentParser, argv: list[str] | None, module: str,
+                  bundle: str | Callable[[argparse.Namespace], str], threads: int = 1
+                  ) -> tuple[Any, Tee, LoadMonitor, float]:
+    """The common start of a CPU benchmark: ``ap`` gains ``--threads`` (default ``threads``) and ``--results``;
+    ``argv`` parsed, the threads set (:func:`set_threads`), the head of the report written (:func:`start_run`, with
+    ``bundle``, or ``bundle(args)``, as the bundle line). Returns the parsed arguments, the output, the load monitor
+    and the start time."""
+    ap.add_argument("--threads", type=int, default=threads)
+    ap.add_argument("--results", type=Path, default=None, help="also write the report to this file")
+    args = ap.parse_args(argv)
+    set_threads(args.threads)
+    out = Tee()
+    monitor, t0 = start_run(out, module, args.threads, "cpu", bundle(args) if callable(bundle) else bundle)
+    return args, out, monitor, t0
+
+
 def start_registrar_run(ap: argparse.ArgumentParser, module: str) -> tuple[Any, Tee, LoadMonitor, float, Any]:
     """The common start of a benchmark that times or scores the shipped bundle's registrar on the CPU: ``ap`` (with
     its own ``--threads``) gains ``--results``; returns the parsed arguments, the output, the load monitor, the start

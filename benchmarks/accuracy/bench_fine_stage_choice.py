@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.bench_common import Tee, end_run, script_parser, set_threads, start_run
+from benchmarks.bench_common import end_run, script_parser, start_cpu_run
 
 SIGNALS = {"edge_ncc": +1, "ncc_after": +1, "residual_var": -1, "local_gain": -1}
 """Each signal and its sense (+1: higher is the better fit)."""
@@ -58,18 +58,13 @@ def main(argv: list[str] | None = None) -> int:
     ap = script_parser(__doc__)
     ap.add_argument("pairs", nargs="+", type=Path, help="pair folders (case.json, cbct.nii.gz, cbct_fov.nii.gz)")
     ap.add_argument("--bundle", default=None, help="bundle directory (default: the shipped one)")
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--results", type=Path, default=None, help="also write the report to this file")
-    args = ap.parse_args(argv)
-    set_threads(args.threads)
+    args, out, monitor, t0 = start_cpu_run(ap, argv, __spec__.name if __spec__ else "bench_fine_stage_choice",
+                                           lambda a: a.bundle or "the shipped bundle")
     import SimpleITK as sitk
 
     import monai_rigidreg
     from monai_rigidreg.core.geometry import transform_points
 
-    out = Tee()
-    monitor, t0 = start_run(out, __spec__.name if __spec__ else "bench_fine_stage_choice", args.threads, "cpu",
-                            args.bundle or "the shipped bundle")
     registrars = _registrars(args.bundle)
     out()
     out("| pair | end pose | TRE (mm) | " + " | ".join(SIGNALS) + " |")

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.accuracy.bench_clinical_geometry import current_acquisition
-from benchmarks.bench_common import Tee, end_run, find_cts, script_parser, set_threads, start_run
+from benchmarks.bench_common import end_run, find_cts, script_parser, start_cpu_run
 
 
 def truth_ncc(ct_image, cbct, fov, matrix: np.ndarray) -> float:
@@ -56,18 +56,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pairs-dir", default="bench_out/clinical",
                     help="bench_clinical_geometry's --output-dir (its pairs are read, not written)")
     ap.add_argument("--case", default="small_000", help="the pair re-simulated per CT")
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--results", type=Path, default=None, help="also write the report to this file")
-    args = ap.parse_args(argv)
-    set_threads(args.threads)
+    args, out, monitor, t0 = start_cpu_run(ap, argv, __spec__.name if __spec__ else "bench_clinical_image_quality",
+                                           "none (simulation only)", threads=2)
     import SimpleITK as sitk
 
     from monai_rigidreg.io.shared_data import HELD_OUT_CTS, TRAINING_CTS
     from monai_rigidreg.simulation.clinical import ClinicalCBCTSpec, load_planning_ct, simulate_clinical_cbct
 
-    out = Tee()
-    monitor, t0 = start_run(out, __spec__.name if __spec__ else "bench_clinical_image_quality", args.threads, "cpu",
-                            "none (simulation only)")
     cts = find_cts(args.cts, out, (*TRAINING_CTS, *HELD_OUT_CTS))
     spec = ClinicalCBCTSpec()
     physics = spec.physics
