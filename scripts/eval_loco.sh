@@ -8,7 +8,8 @@
 #   usage: [SHARED=../shared/data] [SHIPPED=0|1] scripts/eval_loco.sh HOLD_OUT [RUN_DIR] [RESULTS_DIR]
 # RUN_DIR defaults to training/loco/HOLD_OUT, RESULTS_DIR to benchmarks/results/loco; the exported bundle goes to
 # scratch/<RUN_DIR's parent folder name>_<HOLD_OUT>_e<epoch>, the simulated pairs to bench_out/. Exit status 2 for an
-# unknown HOLD_OUT or a fold without a checkpoint. Ends with the table of every fold evaluated so far (benchmarks/accuracy/loco_table.py).
+# unknown HOLD_OUT or a fold without a checkpoint. Ends with the table of every fold evaluated so far
+# (benchmarks/accuracy/loco_table.py).
 # About 5 minutes on 2 cores (the pairs simulated once).
 set -euo pipefail
 cd "$(dirname "$0")/.."

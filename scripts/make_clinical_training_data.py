@@ -45,7 +45,6 @@ def case_spec(rng: np.random.Generator) -> ClinicalCBCTSpec:
     written before 2026-12-06 were simulated without it and are kept: delete a CT's folders to simulate them again)."""
     physics = replace(
         CLINICAL_PHYSICS,
-        exposure_reference=CLINICAL_PHYSICS.exposure_reference,
         photons=float(10 ** rng.uniform(4.0, 5.5)),
         scatter_to_primary=float(rng.uniform(0.1, 0.8)),
         beam_hardening=float(rng.uniform(0.0, 0.04)),

@@ -271,6 +271,7 @@ def cached_pairs(pairs_dir: Path, groups: Any, out: Tee) -> Iterator[tuple[str, 
     skipped."""
     from monai_rigidreg.simulation.clinical import load_clinical_case, load_planning_ct
 
+    acquisition = current_acquisition()
     for ct_dir in sorted(p for p in pairs_dir.iterdir() if p.is_dir()):
         paths = find_cts([ct_dir.name], out, (ct_dir.name,))
         if not paths:
@@ -280,7 +281,7 @@ def cached_pairs(pairs_dir: Path, groups: Any, out: Tee) -> Iterator[tuple[str, 
             if case_dir.name.rsplit("_", 1)[0] not in groups:
                 continue
             case = load_clinical_case(case_dir)
-            if case is not None and case.record.get("cbct") != current_acquisition():
+            if case is not None and case.record.get("cbct") != acquisition:
                 out(f"skipped {ct_dir.name}/{case_dir.name}: simulated with another acquisition than the current "
                     "one (bench_clinical_geometry with this --output-dir simulates it again)")
             elif case is not None:

@@ -65,6 +65,7 @@ def main(argv: list[str] | None = None) -> int:
 
     cts = find_cts(args.cts, out, (*TRAINING_CTS, *HELD_OUT_CTS))
     spec = ClinicalCBCTSpec()
+    acquisition = current_acquisition()  # what a cached pair must have recorded to be read as it is
     physics = spec.physics
     variants = {
         "as configured": physics,
@@ -103,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
             rec = json.loads((pair / "case.json").read_text())
             if rec.get("deformation") is not None:
                 continue
-            if rec.get("cbct") != current_acquisition():
+            if rec.get("cbct") != acquisition:
                 other += 1  # simulated with another acquisition (e.g. before the exposure control)
                 continue
             cached.append(truth_ncc(ct_image, sitk.ReadImage(str(pair / "cbct.nii.gz"), sitk.sitkFloat32),

@@ -140,8 +140,8 @@ def simulate_clinical_cbct(
         ``(cbct, fov, info)``: the CBCT (float32 HU, grid centred on ``p``, CBCT frame), its field-of-view mask
         (uint8, same grid) and ``{"object_grid": size, "detector": ..., "photons": I0, "centre_line_integral": p}``
         (``I0`` after the automatic exposure control, photons per pixel and view, ``None`` without quantum noise;
-        ``p`` the ideal line integral
-        through the isocentre, :func:`~monai_rigidreg.simulation.physics.centre_line_integral`).
+        ``p`` the ideal line integral through the isocentre,
+        :func:`~monai_rigidreg.simulation.physics.centre_line_integral`).
     """
     spec = ClinicalCBCTSpec() if spec is None else spec
     dev = resolve_device(device)
