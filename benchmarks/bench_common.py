@@ -97,18 +97,42 @@ def training_mark(name: str) -> str:
             else " (held out of training)")
 
 
-def add_final_norm_option(ap: argparse.ArgumentParser) -> None:
-    """``--native-final-norm-mm``: the registrar's last-level final pass on the normalised local contrast (a
-    candidate, off by default); :func:`apply_final_norm_option` sets it on a loaded registrar."""
+def add_registrar_options(ap: argparse.ArgumentParser) -> None:
+    """The default path's candidates and switches, set on a loaded registrar by :func:`apply_registrar_options`:
+    ``--native-final-norm-mm`` (the last level's final pass on the normalised local contrast, off by default) and
+    ``--fine-stage-choice-mm`` (the fine-stage choice's limit; ``off``: never run, for the A/B)."""
     ap.add_argument("--native-final-norm-mm", type=float, default=None,
                     help="the last level's final pass on the normalised local contrast at this sigma (mm; "
                          "RigidRegistrar native_final_norm_mm; default: the bundle's, off)")
+    ap.add_argument("--fine-stage-choice-mm", default=None, type=_mm_or_off,
+                    help="the fine-stage choice's limit (mm; RigidRegistrar fine_stage_choice_mm), or 'off' "
+                         "(default: the bundle's)")
 
 
-def apply_final_norm_option(registrar: Any, args: argparse.Namespace) -> None:
-    """Set ``--native-final-norm-mm`` (:func:`add_final_norm_option`) on ``registrar`` where it was given."""
-    if registrar is not None and args.native_final_norm_mm is not None:
+def _mm_or_off(text: str) -> float | str:
+    if text == "off":
+        return text
+    value = float(text)
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"expected millimetres >= 0 or 'off', got {text!r}")
+    return value
+
+
+def apply_registrar_options(registrar: Any, args: argparse.Namespace) -> None:
+    """Set the options of :func:`add_registrar_options` that were given on ``registrar``."""
+    if registrar is None:
+        return
+    if args.native_final_norm_mm is not None:
         registrar.native_final_norm_mm = float(args.native_final_norm_mm)
+    choice = getattr(args, "fine_stage_choice_mm", None)
+    if choice is not None:
+        registrar.fine_stage_choice_mm = None if choice == "off" else float(choice)
+
+
+def registrar_options_line(registrar: Any) -> str:
+    """The settings :func:`apply_registrar_options` may change, as ``registrar`` has them (for a report's header)."""
+    return (f"registrar: fine_stage_choice_mm {getattr(registrar, 'fine_stage_choice_mm', None)}, "
+            f"native_final_norm_mm {getattr(registrar, 'native_final_norm_mm', None)}")
 
 
 def find_cts(requested: list[str] | None, out: Tee, defaults: tuple[str, ...]) -> list[Path]:
@@ -314,3 +338,18 @@ def signed(values: object) -> str:
 def script_parser(doc: str | None) -> argparse.ArgumentParser:
     """A benchmark's argument parser, its module docstring (method, usage) as the ``--help`` text, as written."""
     return argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+
+
+def fine_stage_choice_summary(choices: list[dict[str, Any] | None]) -> str:
+    """One line on the default path's fine-stage choice over a benchmark's cases (``details.fine_stage_choice`` of
+    each, ``None`` where it was not recorded): how far the fine stage moved the regression's estimate, on how many
+    cases the choice ran (a move beyond ``fine_stage_choice_mm``) and on how many the regression's end pose won."""
+    got = [c for c in choices if c]
+    if not got:
+        return "fine-stage choice: not recorded"
+    moves = np.asarray([c["move_mm"] for c in got], dtype=np.float64)
+    ran = [c for c in got if "kept" in c]
+    kept = sum(c["kept"] == "regression" for c in ran)
+    return (f"fine-stage choice: the fine stage moved the regression's estimate median {np.median(moves):.2f} mm, "
+            f"max {moves.max():.2f} mm over {len(got)} cases; the choice ran on {len(ran)}, the regression's end "
+            f"pose kept on {kept}")

@@ -26,7 +26,7 @@ import types
 import warnings
 from typing import Any
 
-__version__ = "0.6.1"
+__version__ = "0.6.2"
 
 # Thread policy (before anything imports torch): PyTorch's OpenMP worker threads spin while they wait for work
 # (libgomp's default), so beside another CPU-bound process each spinning thread steals the core the other process

@@ -86,16 +86,18 @@ import numpy as np
 
 from benchmarks.bench_common import (
     Tee,
-    add_final_norm_option,
     add_peer_mask_option,
-    apply_final_norm_option,
+    add_registrar_options,
+    apply_registrar_options,
     checked_peers,
     ct_name,
     end_run,
     find_cts,
+    fine_stage_choice_summary,
     is_training_ct,
     peer_mask,
     peer_mask_line,
+    registrar_options_line,
     script_parser,
     set_threads,
     signed,
@@ -480,6 +482,7 @@ def path_summary(rows: list[dict[str, Any]], methods: list[str], out: Tee) -> No
             starts[x["details"].get("start", "?")] = starts.get(x["details"].get("start", "?"), 0) + 1
         out(f"{m}: paths {dict((p, paths.count(p)) for p in sorted(set(paths)))}; fallback ran on {len(fell)} of "
             f"{len(res)} ({_pct(len(fell) / len(res))}; reasons {reasons}); starts {starts}")
+        out("  " + fine_stage_choice_summary([x["details"].get("fine_stage_choice") for x in res]))
         checks = [x["details"]["lead_check"] for x in res if x["details"].get("lead_check")]
         if checks:  # how close the cases came to the check's limits (registration/lead.py)
             out(f"  check: confidence min {min(k['confidence'] for k in checks):.3f}, overlap min "
@@ -494,7 +497,8 @@ def path_summary(rows: list[dict[str, Any]], methods: list[str], out: Tee) -> No
             others = ", ".join(f"{k} {v[key]:.2f}" for k, v in r["results"].items() if k not in (m, "identity"))
             out(f"  - {r['ct']} {r['case_id']}: fallback {'ran' if x['details']['fallback']['run'] else 'no'}, "
                 f"start {x['details'].get('start')}, {key} {x[key]:.2f}{' flagged' if x['flagged'] else ''} "
-                f"({others}); check {x['details']['lead_check']}")
+                f"({others}); check {x['details']['lead_check']}; fine-stage choice "
+                f"{x['details'].get('fine_stage_choice')}")
         stages = list(dict.fromkeys(k for x in res for k in x.get("timings", {})))
         if stages:
             out("  median seconds per stage (0 where a stage did not run): " + ", ".join(
@@ -553,7 +557,7 @@ def main() -> int:
     ap.add_argument("--simulate-only", action="store_true", help="build (or resume) the pairs, register nothing")
     ap.add_argument("--native-max-voxels", type=int, default=None,
                     help="the last level's grid at most this many voxels (default: the bundle's / the registrar's)")
-    add_final_norm_option(ap)
+    add_registrar_options(ap)
     add_peer_mask_option(ap)
     ap.add_argument("--no-native-level", action="store_true",
                     help="the network without its last level at native resolution (RigidRegistrar native_level)")
@@ -610,7 +614,8 @@ def main() -> int:
         registrar.global_init = not args.no_global_init
         if args.native_max_voxels is not None:
             registrar.native_max_voxels = int(args.native_max_voxels)
-        apply_final_norm_option(registrar, args)
+        apply_registrar_options(registrar, args)
+        out(registrar_options_line(registrar))
     all_rows: list[dict[str, Any]] = []
     run_notes: list[str] = []
     for path in cts:

@@ -48,16 +48,18 @@ import numpy as np
 
 from benchmarks.bench_common import (
     Tee,
-    add_final_norm_option,
     add_peer_mask_option,
-    apply_final_norm_option,
+    add_registrar_options,
+    apply_registrar_options,
     checked_peers,
     ct_name,
     end_run,
     find_cts,
+    fine_stage_choice_summary,
     is_training_ct,
     peer_mask,
     peer_mask_line,
+    registrar_options_line,
     script_parser,
     set_threads,
     signed,
@@ -177,6 +179,7 @@ def summary_table(rows: list[dict], methods: list[str], out: Tee) -> None:
         out(f"{m}: paths {dict((p, paths.count(p)) for p in dict.fromkeys(paths))}; fallback ran on {len(fell)} of "
             f"{len(res)} (reasons {reasons}); median seconds per stage (0 where it did not run): " + ", ".join(
                 f"{k} {np.median([c.extra['timings'].get(k, 0.0) for c in res]):.2f}" for k in stages))
+        out("  " + fine_stage_choice_summary([c.extra.get("fine_stage_choice") for c in res]))
         checks = [c.extra["lead_check"] for c in res if c.extra.get("lead_check")]
         if checks:  # how close the cases came to the check's limits (lead.py)
             out(f"  check: confidence min {min(k['confidence'] for k in checks):.3f}, overlap min "
@@ -236,7 +239,7 @@ def main() -> int:
                     help="fine passes of a CorrelationRigidNet at inference (default: the bundle's)")
     ap.add_argument("--subcell", choices=("softargmax", "parabola"), default=None,
                     help="how a CorrelationRigidNet's fine level reads its matches (default: the bundle's)")
-    add_final_norm_option(ap)
+    add_registrar_options(ap)
     add_peer_mask_option(ap)
     ap.add_argument("--results", type=Path, default=None, help="also write the printed text to FILE")
     args = ap.parse_args()
@@ -291,7 +294,9 @@ def main() -> int:
         if not hasattr(fine, "subcell"):
             ap.error("--subcell needs a bundle whose regression is a CorrelationRigidNet")
         fine.subcell = args.subcell
-    apply_final_norm_option(registrar, args)
+    apply_registrar_options(registrar, args)
+    if registrar is not None:
+        out(registrar_options_line(registrar))
     all_rows: list[dict] = []
     per_ct: list[tuple[str, list[dict]]] = []
     timing: list[str] = []

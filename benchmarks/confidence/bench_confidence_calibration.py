@@ -46,8 +46,8 @@ import numpy as np
 
 from benchmarks.bench_common import (
     Tee,
-    add_final_norm_option,
-    apply_final_norm_option,
+    add_registrar_options,
+    apply_registrar_options,
     end_run,
     script_parser,
     start_run,
@@ -87,7 +87,7 @@ def collect(args: Any, out: Tee) -> None:
         overlap.OVERLAP_WEIGHTED_BELOW = -1.0
     registrar = monai_rigidreg.RigidRegistrar.from_bundle(args.bundle, device="cpu")
     registrar.adapt_threads = False
-    apply_final_norm_option(registrar, args)  # the candidate against the CBCT's shading bias
+    apply_registrar_options(registrar, args)  # the candidate against the CBCT's shading bias
     args.cases.parent.mkdir(parents=True, exist_ok=True)
     done = _done(args.cases)
     generators = []
@@ -469,7 +469,7 @@ def main() -> None:
     ap.add_argument("--limit", type=int, default=0, help="stop after this many new cases (0: all)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--bundle", type=Path, default=None)
-    add_final_norm_option(ap)  # with --collect
+    add_registrar_options(ap)  # with --collect
     ap.add_argument("--results", type=Path, default=None)
     ap.add_argument("--note", default="", help="a line for the result file's header (e.g. the machine's load while "
                                                "the cases were collected)")

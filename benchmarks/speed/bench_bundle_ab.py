@@ -5,7 +5,8 @@ with one inference setting changed) into one process and registers ``bench_speed
 ``bench_speed --output-dir``) with the default path, A and B interleaved case by case and their order alternated
 from round to round, so that a change of the machine's load falls on both alike. Printed: the median seconds per
 registration and per stage of each, B's median over A's, the mean distance between the two estimates over the
-pair's TRE points (0: identical), each one's TRE, flags and fallbacks, and the load average before and after.
+pair's TRE points (0: identical), each one's TRE, flags and fallbacks, the fine-stage choice of each (how far
+the fine stage moved the regression's estimate, which end pose was kept), and the load average before and after.
 
 Time on a quiet machine (pause other jobs); the figures are seconds on this machine's cores as the run found them.
 
@@ -30,6 +31,15 @@ import monai_rigidreg  # first: its thread policy applies before torch loads
 from benchmarks.bench_common import Tee, script_parser
 from benchmarks.speed.bench_speed import load_case, load_text, stage_medians, tre_mm
 from monai_rigidreg.core.geometry import params_to_matrix, target_registration_error
+
+
+def _choice(result: monai_rigidreg.RegistrationResult) -> str:
+    """The fine-stage choice of a result in a few words (``details.fine_stage_choice``): how far the fine stage
+    moved the regression's estimate and, where the choice ran, which end pose was kept."""
+    choice = result.details.get("fine_stage_choice")
+    if not choice:
+        return "-"
+    return f"{choice['move_mm']:.2f} mm" + (f", kept {choice['kept']}" if "kept" in choice else "")
 
 
 def _estimate_distance_mm(a: monai_rigidreg.RegistrationResult, b: monai_rigidreg.RegistrationResult,
@@ -95,12 +105,14 @@ def main() -> None:
         out(f"stages of {key} (median s): {stage_medians(rows[key])}")
     out(f"B / A (median seconds): {med['B'] / med['A']:.3f}; A - B: {med['A'] - med['B']:+.3f} s")
     out("")
-    out("| pair (last round) | TRE A (mm) | TRE B (mm) | A to B (mm, mean over the TRE points) |")
-    out("|---|---|---|---|")
+    out("| pair (last round) | TRE A (mm) | TRE B (mm) | A to B (mm, mean over the TRE points) | fine-stage choice "
+        "A / B |")
+    out("|---|---|---|---|---|")
     for i, (record, _, points) in enumerate(loaded):  # the last round's results
         a, b = last[("A", i)], last[("B", i)]
         out(f"| {cases[i].name} | {tre_mm(a.params, a.center, record, points):.3f} | "
-            f"{tre_mm(b.params, b.center, record, points):.3f} | {_estimate_distance_mm(a, b, points):.4f} |")
+            f"{tre_mm(b.params, b.center, record, points):.3f} | {_estimate_distance_mm(a, b, points):.4f} | "
+            f"{_choice(a)} / {_choice(b)} |")
     out.write(args.results)
 
 

@@ -85,7 +85,8 @@ sitk.WriteImage(sitk.Resample(moving, fixed, tfm, sitk.sitkLinear, -1000.0), out
 
 
 def make_pairs(ct_path: Path, folder: Path, n: int, seed: int) -> list[Path]:
-    """``n`` clinical pairs (CBCT 128^3 at 1.5 mm) in ``folder/case_k`` (made once, reused)."""
+    """``n`` clinical pairs (CBCT 128^3 at 1.5 mm) in ``folder/case_k`` with their TRE points
+    (``tre_points.npy``; made once, reused)."""
     from monai_rigidreg.simulation.clinical import (
         CLINICAL_GROUPS,
         ClinicalCBCTSpec,
@@ -93,6 +94,7 @@ def make_pairs(ct_path: Path, folder: Path, n: int, seed: int) -> list[Path]:
         load_planning_ct,
         make_clinical_case,
         save_clinical_case,
+        tre_points,
     )
 
     spec = ClinicalCBCTSpec(size=(128, 128, 128), spacing=1.5)
@@ -104,6 +106,10 @@ def make_pairs(ct_path: Path, folder: Path, n: int, seed: int) -> list[Path]:
             ct = load_planning_ct(ct_path) if ct is None else ct
             case = make_clinical_case(ct, CLINICAL_GROUPS["small"], seed + k, f"case_{k}", spec)
             save_clinical_case(case, case_dir, fixed=ct_path)
+        if not (case_dir / "tre_points.npy").is_file():
+            ct = load_planning_ct(ct_path) if ct is None else ct
+            case = load_clinical_case(case_dir)
+            np.save(case_dir / "tre_points.npy", tre_points(ct, case.matrix, case.fov))
         out.append(case_dir)
     return out
 
@@ -271,13 +277,6 @@ def main() -> None:
     args.output_dir.mkdir(parents=True, exist_ok=True)
     cases = make_pairs(ct_path, args.output_dir, args.cases, args.seed)
     ct = sitk.ReadImage(str(ct_path), sitk.sitkFloat32)
-    from monai_rigidreg.simulation.clinical import load_clinical_case, load_planning_ct, tre_points
-
-    pct = load_planning_ct(ct_path)
-    for case_dir in cases:
-        if not (case_dir / "tre_points.npy").is_file():
-            case = load_clinical_case(case_dir)
-            np.save(case_dir / "tre_points.npy", tre_points(pct, case.matrix, case.fov))
     first = sitk.ReadImage(str(cases[0] / "cbct.nii.gz"))
     stored = sitk.ImageFileReader()
     stored.SetFileName(str(ct_path))

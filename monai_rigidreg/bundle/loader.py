@@ -27,7 +27,7 @@ PACKAGE_DIR = Path(__file__).resolve().parents[1]
 """The installed ``monai_rigidreg`` package folder."""
 SETTING_KEYS = ("network_size", "network_spacing", "cascade_steps", "global_init", "search_starts", "native_level",
                 "native_bias_degree", "native_bias_degree_roi", "native_highpass_sigma_mm", "network_leads",
-                "native_max_voxels", "native_final_norm_mm", "lead_passes")
+                "native_max_voxels", "native_final_norm_mm", "lead_passes", "fine_stage_choice_mm")
 
 
 def default_bundle_path() -> Path:

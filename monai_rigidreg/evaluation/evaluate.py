@@ -357,7 +357,7 @@ def _run_method(method: str, fixed: sitk.Image, moving: sitk.Image, fov: sitk.Im
         details = getattr(res, "details", {})
         extra = {"confidence": res.confidence, "flagged": res.flagged, "start": details.get("start"),
                  "path": details.get("path"), "fallback": details.get("fallback"),
-                 "lead_check": details.get("lead_check"),
+                 "lead_check": details.get("lead_check"), "fine_stage_choice": details.get("fine_stage_choice"),
                  "timings": {k: round(v, 4) for k, v in res.timings.items()}}
         return res.params, time.perf_counter() - t0, extra
     if method == "sitk":

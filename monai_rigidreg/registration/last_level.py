@@ -18,6 +18,7 @@ weight on the CT.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING, Any
@@ -45,8 +46,9 @@ from monai_rigidreg.registration.search import matrix_distance_mm
 if TYPE_CHECKING:
     from monai_rigidreg.registration.state import Background, RegistrationState
 
-__all__ = ["CANDIDATE_SHARE_MAX", "EARLY_SWAP_MAX_CHANGE_MM", "FINAL_NORM_MAX_MM", "NATIVE_CONVERGED_MM",
-           "NATIVE_MAX_PASSES", "LastLevelStage", "native_grid", "refine_native", "support_reach"]
+__all__ = ["CANDIDATE_SHARE_MAX", "EARLY_SWAP_MAX_CHANGE_MM", "FINAL_NORM_MAX_MM", "FINE_STAGE_CHOICE_MM",
+           "NATIVE_CONVERGED_MM", "NATIVE_MAX_PASSES", "LastLevelStage", "native_grid", "refine_native",
+           "support_reach"]
 
 NATIVE_CONVERGED_MM = 0.5
 """The last level runs again from its own result while its latest pass moved the estimate by more than this (mm, the
@@ -72,6 +74,14 @@ FINAL_NORM_MAX_MM = 1.5
 default) is kept where it moves the converged estimate by at most this (mm, the mean over the network grid's
 points): the shading bias it removes measured up to about 0.9 mm (``docs/trust.md``); a larger move is another
 optimum, not a correction."""
+
+FINE_STAGE_CHOICE_MM = 5.0
+"""Where the network's fine stage moved the learned regression's estimate by more than this (mm, the mean over the
+network grid's points), the last level also runs from the regression's estimate and the better image match goes on
+(``LastLevelStage._fine_stage_choice``, ``RigidRegistrar(fine_stage_choice_mm=)``). On a large patient's clinical
+CBCTs the fine stage's coarse levels carried right estimates 24-62 mm away; where it corrects a regression a few
+millimetres off, both end poses agree or the fine stage's matches better (``docs/results.md``, "The fine-stage
+choice")."""
 
 CANDIDATE_SHARE_MAX = 0.8
 """The last level's steps go over the candidate voxels (:func:`support_reach`) only where these are at most this
@@ -210,6 +220,8 @@ class LastLevelStage:
     _in_background: Callable[..., Background]
     _fixed_support: Callable[..., torch.Tensor | None]
     _runner_up_within_ct: Callable[..., tuple[np.ndarray, bool]]
+    _image_match: Callable[..., list[float]]
+    fine_stage_choice_mm: float | None
 
     def _last_level(self, state: RegistrationState, swap_beside: bool = True) -> None:
         """Stage 6: the last level (:meth:`_native`) from the network's estimate, where it runs. The confidence
@@ -230,16 +242,65 @@ class LastLevelStage:
         refined, details["native_level"] = self._native(state.inputs.fixed, state.inputs.moving, run.total,
                                                         state.fov_img, state.weights, run.grid,
                                                         region=state.weight_img is not None)
+        choice_before = state.timings.get("fine_stage_choice", 0.0)
+        refined, chose_regression = self._fine_stage_choice(state, refined)
         refined, switched = self._runner_up_within_ct(state, refined)  # partial overlap only (registration.overlap)
+        switched = switched or chose_regression
         state.params = matrix_to_params(refined, state.run.grid.center())
         state.net_params = state.params.copy()
-        state.timings["native_level"] = time.perf_counter() - t
+        # the choice's own last level is timed apart (timings["fine_stage_choice"])
+        state.timings["native_level"] = (time.perf_counter() - t
+                                         - (state.timings.get("fine_stage_choice", 0.0) - choice_before))
         if state.early_swap is not None:
             stale = switched or details["native_level"]["change_mm"] > EARLY_SWAP_MAX_CHANGE_MM
             details["swap_estimate"] = "after the last level" if stale else "beside the last level"
             if stale:
                 state.early_swap.wait()
                 state.early_swap = None
+
+    def _fine_stage_choice(self, state: RegistrationState, refined: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Where the fine stage moved the learned regression's estimate by more than ``fine_stage_choice_mm`` (mm, the
+        mean over the network grid's points), the last level also runs from the regression's estimate and the end
+        pose whose CBCT field of view matches the CT better (:meth:`_image_match`, inside the match region, or the
+        CT's box where the CT does not cover the CBCT's tissue) goes on; the fine stage's on a tie. The fine stage's
+        coarse levels correct a regression a few millimetres off, but on a large patient's noisy, scatter-shaded
+        CBCTs they carried right estimates tens of millimetres away (:data:`FINE_STAGE_CHOICE_MM`). ``refined``: the
+        last level's result from the fine stage's estimate (fixed -> moving). Returns the pose that goes on and
+        whether it is the regression's; then ``state.run`` becomes the run with the regression's estimate as its
+        residual (what the fallback's choice between starts and the checks compare) and ``details.native_level``
+        describes its last level. Records ``details.fine_stage_choice`` (``move_mm``: how far the fine stage moved
+        the regression's estimate; where the choice ran, each end pose's ``*_ncc``, ``end_distance_mm`` and
+        ``kept``: ``"fine stage"`` or ``"regression"``) for the run it judged, and adds its seconds to
+        ``timings["fine_stage_choice"]``. Nothing to choose from (no record): the choice off, no fine stage, or a
+        cascade (``cascade_steps > 1``, whose fine stage runs once per step)."""
+        limit = getattr(self, "fine_stage_choice_mm", None)
+        run = state.run
+        regression_total = run.regression_total
+        if limit is None or regression_total is None:
+            return refined, False
+        t = time.perf_counter()
+        points = grid_points(run.grid, 8)
+        move = matrix_distance_mm(run.total, regression_total, points)
+        record: dict[str, Any] = {"move_mm": round(move, 3)}
+        state.details["fine_stage_choice"] = record
+        if not move > limit:
+            return refined, False
+        from_regression, regression_detail = self._native(state.inputs.fixed, state.inputs.moving, regression_total,
+                                                          state.fov_img, state.weights, run.grid,
+                                                          region=state.weight_img is not None)
+        region = state.weight_img if state.weight_img is not None else state.domain
+        s_fine, s_regression = self._image_match(state.inputs.fixed, state.inputs.moving, state.fov_img,
+                                                 [refined, from_regression], region)
+        chose = bool(s_regression > s_fine)  # NaN compares false: the fine stage's stays
+        record.update(fine_stage_ncc=round(float(s_fine), 4), regression_ncc=round(float(s_regression), 4),
+                      end_distance_mm=round(matrix_distance_mm(refined, from_regression, points), 3),
+                      kept="regression" if chose else "fine stage")
+        state.timings["fine_stage_choice"] = state.timings.get("fine_stage_choice", 0.0) + time.perf_counter() - t
+        if not chose:
+            return refined, False
+        state.run = dataclasses.replace(run, residual=run.regression, total=regression_total)
+        state.details["native_level"] = regression_detail
+        return from_regression, True
 
     def _polish_probe(self, state: RegistrationState) -> float:
         """The learned network alone (``fine_stage=False``): how far the last level, run from its estimate, would

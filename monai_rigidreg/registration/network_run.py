@@ -8,9 +8,12 @@ centre, and the run's total is ``start o residual`` (:class:`~monai_rigidreg.reg
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 import SimpleITK as sitk
@@ -149,13 +152,40 @@ class NetworkRuns:
         t = time.perf_counter()
         # the network works about its grid's centre: a grid of the same size and spacing stands for all of them
         canonical = self.grid_spec.canonical()
-        residuals = self.estimate_batch(torch.stack([m for _, _, m in prepared]),
-                                        torch.stack(fixed_in), canonical, steps,
-                                        None if weight_ts[0] is None else torch.stack(weight_ts))
+        with _regression_estimates(self.network, steps or self.cascade_steps, len(starts)) as regressions:
+            residuals = self.estimate_batch(torch.stack([m for _, _, m in prepared]),
+                                            torch.stack(fixed_in), canonical, steps,
+                                            None if weight_ts[0] is None else torch.stack(weight_ts))
         timings["network"] = timings.get("network", 0.0) + time.perf_counter() - t
         runs = []
-        for (grid, fixed_t, moving_t), start, residual in zip(prepared, starts, residuals):
+        for k, ((grid, fixed_t, moving_t), start, residual) in enumerate(zip(prepared, starts, residuals)):
             total = start @ params_to_matrix(residual, grid.center())
-            runs.append(NetworkRun(grid, fixed_t, moving_t, start, residual, total))
+            runs.append(NetworkRun(grid, fixed_t, moving_t, start, residual, total,
+                                   None if regressions is None or len(regressions) != 1 else regressions[0][k]))
         return runs
+
+
+@contextlib.contextmanager
+def _regression_estimates(network: nn.Module, steps: int, batch: int) -> Iterator[list[np.ndarray] | None]:
+    """While the block runs, the learned regression's estimates that ``network``'s fine stage receives (``[batch,
+    6]`` numpy, mm/deg about the grid centre), caught by a forward pre-hook on the fine stage in this thread only
+    (the swapped-input estimate may run the same network in a worker thread). Yields the list they are appended to,
+    one entry per fine-stage call; ``None`` where there is nothing to catch: no fine stage, the fine stage off, or
+    a cascade (``steps > 1``: the fine stage runs once per step)."""
+    fine = getattr(network, "fine_stage", None)
+    if fine is None or not getattr(network, "fine_stage_enabled", True) or steps != 1:
+        yield None
+        return
+    caught: list[np.ndarray] = []
+    thread = threading.get_ident()
+
+    def catch(_module: nn.Module, args: tuple[Any, ...]) -> None:
+        if threading.get_ident() == thread and len(args) >= 3 and args[2].shape[0] == batch:
+            caught.append(args[2].detach().double().cpu().numpy())
+
+    handle = fine.register_forward_pre_hook(catch)
+    try:
+        yield caught
+    finally:
+        handle.remove()
 

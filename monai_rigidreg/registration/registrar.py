@@ -75,7 +75,7 @@ from monai_rigidreg.registration.calibration import UNCALIBRATED_MEANING, load_c
 from monai_rigidreg.registration.classical import register_sitk
 from monai_rigidreg.registration.confidence import LOCAL_GAIN_LIMIT, ConfidenceStage, cylindrical_fov_mask
 from monai_rigidreg.registration.inputs import check_cascade_steps, read_inputs
-from monai_rigidreg.registration.last_level import EARLY_SWAP_MAX_CHANGE_MM, LastLevelStage
+from monai_rigidreg.registration.last_level import EARLY_SWAP_MAX_CHANGE_MM, FINE_STAGE_CHOICE_MM, LastLevelStage
 from monai_rigidreg.registration.lead import LeadPath
 from monai_rigidreg.registration.match_region import RoiLike, match_weight, parse_roi
 from monai_rigidreg.registration.network_run import NetworkRuns
@@ -150,6 +150,9 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
         lead_passes: ``(8 mm, 4 mm)`` passes of a ``ContextCorrelationNet``'s learned levels where the fine stage
             follows (the default path and its fallback; the bundle's: ``[2, 1]``, ``docs/results.md``); ``None``: the
             network's own (``network_def.regression.passes``, which the network alone, ``fine_stage=False``, keeps).
+        fine_stage_choice_mm: the fine-stage choice's limit (mm; ``None``: off;
+            :meth:`~monai_rigidreg.registration.last_level.LastLevelStage._fine_stage_choice`, the default
+            :data:`~monai_rigidreg.registration.last_level.FINE_STAGE_CHOICE_MM`).
 
     ``lead_fallback`` (attribute, default ``True``): ``False`` records the network-led path's check without running
     its fallback (``python -m benchmarks.accuracy.bench_lead_check`` measures the check that way).
@@ -184,6 +187,7 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
         native_max_voxels: int = 1_500_000,
         native_final_norm_mm: float | None = None,
         lead_passes: Sequence[int] | None = None,
+        fine_stage_choice_mm: float | None = FINE_STAGE_CHOICE_MM,
     ) -> None:
         if network_size is None or network_spacing is None:
             shipped = NetworkGridSpec.from_bundle()
@@ -251,6 +255,9 @@ class RigidRegistrar(NetworkRuns, StartChoice, LastLevelStage, OverlapStage, Con
         if lead_passes is not None and (len(lead_passes) != 2 or min(int(p) for p in lead_passes) < 0):
             raise InputError(f"lead_passes must be two pass counts >= 0 (8 mm, 4 mm), got {lead_passes}")
         self.lead_passes = None if lead_passes is None else tuple(int(p) for p in lead_passes)
+        if fine_stage_choice_mm is not None and not float(fine_stage_choice_mm) >= 0:
+            raise InputError(f"fine_stage_choice_mm must be >= 0 mm (or None), got {fine_stage_choice_mm}")
+        self.fine_stage_choice_mm = None if fine_stage_choice_mm is None else float(fine_stage_choice_mm)
 
     @property
     def network_size(self) -> tuple[int, int, int]:

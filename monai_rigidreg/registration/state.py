@@ -17,7 +17,7 @@ import numpy as np
 import SimpleITK as sitk
 import torch
 
-from monai_rigidreg.core.geometry import Grid
+from monai_rigidreg.core.geometry import Grid, params_to_matrix
 from monai_rigidreg.registration.inputs import Inputs
 
 __all__ = ["Background", "NetworkRun", "RegistrationOptions", "RegistrationState"]
@@ -45,7 +45,9 @@ class RegistrationOptions:
 @dataclass
 class NetworkRun:
     """One network run from a start (``RigidRegistrar._run_from``): its grid and ``[1, x, y, z]`` tensors, the
-    start and the residual (mm/deg about the grid centre) and the total fixed -> moving matrix (LPS mm)."""
+    start and the residual (mm/deg about the grid centre) and the total fixed -> moving matrix (LPS mm);
+    ``regression``: the learned regression's residual before the fine stage (mm/deg about the grid centre; ``None``
+    where no fine stage ran, or in a cascade, ``cascade_steps > 1``, whose fine stage runs once per step)."""
 
     grid: Grid
     fixed_t: torch.Tensor
@@ -53,6 +55,15 @@ class NetworkRun:
     start: np.ndarray
     residual: np.ndarray
     total: np.ndarray
+    regression: np.ndarray | None = None
+
+    @property
+    def regression_total(self) -> np.ndarray | None:
+        """The fixed -> moving matrix (LPS mm) of the regression's estimate before the fine stage, ``start o
+        regression``, in the frame of :attr:`total` (``None`` where :attr:`regression` is)."""
+        if self.regression is None:
+            return None
+        return self.start @ params_to_matrix(self.regression, self.grid.center())
 
     @property
     def sampling(self) -> np.ndarray | None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import SimpleITK as sitk
+import torch
 from conftest import KNOWN_MOTION, synth_ct
 
 from monai_rigidreg.core.geometry import (
@@ -18,6 +19,7 @@ from monai_rigidreg.core.geometry import (
 from monai_rigidreg.evaluation.evaluate import body_points
 from monai_rigidreg.io.volumes import load_volume
 from monai_rigidreg.registration import RigidRegistrar
+from monai_rigidreg.registration.last_level import FINE_STAGE_CHOICE_MM
 from monai_rigidreg.registration.lead import (
     LEAD_CONFIDENCE,
     LEAD_MIN_OVERLAP,
@@ -151,3 +153,141 @@ def test_register_thorough_takes_the_thorough_path_from_python_and_the_command_l
                  "--output-dir", str(default), "--no-qc", "--device", "cpu"]) == 0
     details = json.loads((default / "result.json").read_text())["details"]
     assert details["path"] == "network-led" and details["fallback"]["run"] is False
+
+
+OFFSET_DEG = 90.0
+"""How far the tests of the fine-stage choice turn an estimate about z (degrees): beyond the last level's reach on
+the fast pair, which pulls a 40-70 mm translation or a 60-degree turn about y back to the right pose."""
+
+
+def _offset(params: torch.Tensor, sign: float = 1.0) -> torch.Tensor:
+    """``params`` (``[B, 6]``, mm/deg) turned by ``sign`` * :data:`OFFSET_DEG` more about z."""
+    out = params.clone()
+    out[:, 5] += sign * OFFSET_DEG
+    return out
+
+
+def test_where_the_fine_stage_carries_a_right_estimate_away_the_regressions_goes_on(fast_pair, registrar,
+                                                                                       monkeypatch):
+    # the fine stage made to end 90 degrees about z from the regression's estimate, about 70 mm over the network
+    # grid's points (the large abdomen's failure: 24-62 mm)
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    monkeypatch.setattr(registrar, "lead_fallback", False)  # the choice itself, not the fallback's rescue
+    stage = registrar.network.fine_stage
+    monkeypatch.setattr(stage, "forward", lambda m, f, start, w=None: (
+        _offset(start), torch.zeros(start.shape[0], dtype=torch.bool)))
+    points = body_points(fixed)
+    monkeypatch.setattr(registrar, "fine_stage_choice_mm", None)
+    without = registrar(fixed, moving, resample_moving=False)
+    assert "fine_stage_choice" not in without.details
+    assert target_registration_error(without.params, KNOWN_MOTION, points, center=without.center) > 10.0
+    monkeypatch.setattr(registrar, "fine_stage_choice_mm", FINE_STAGE_CHOICE_MM)
+    res = registrar(fixed, moving, resample_moving=False)
+    choice = res.details["fine_stage_choice"]
+    assert choice["move_mm"] > 50.0
+    assert choice["kept"] == "regression" and choice["regression_ncc"] > choice["fine_stage_ncc"]
+    assert choice["end_distance_mm"] > 10.0 and "fine_stage_choice" in res.timings
+    assert target_registration_error(res.params, KNOWN_MOTION, points, center=res.center) < 1.0
+    # the kept pose's last level is the one recorded: it polished the regression's estimate (a few tenths of a mm)
+    assert res.details["native_level"]["change_mm"] < LEAD_POLISH_MAX_MM and not res.flagged
+    # the run that goes on carries the regression's estimate (what the fallback's choice between starts compares),
+    # and on the thorough path the swapped-input estimate started beside the last level is computed again
+    seen = []
+    runner_up = registrar._runner_up_within_ct
+
+    def spy(state, refined):
+        seen.append((state.run.residual.copy(), state.run.regression.copy()))
+        return runner_up(state, refined)
+
+    monkeypatch.setattr(registrar, "_runner_up_within_ct", spy)
+    thorough = registrar(fixed, moving, resample_moving=False, thorough=True)
+    assert thorough.details["fine_stage_choice"]["kept"] == "regression"
+    np.testing.assert_allclose(seen[-1][0], seen[-1][1], atol=1e-12)
+    assert thorough.details["swap_estimate"] == "after the last level"
+    assert target_registration_error(thorough.params, KNOWN_MOTION, points, center=thorough.center) < 1.0
+
+
+def test_where_the_fine_stage_corrects_a_wrong_regression_its_estimate_goes_on(fast_pair, registrar, monkeypatch):
+    # the mirror: the fine stage receives a regression estimate 90 degrees off (a pre-hook registered before the
+    # choice's own, which sees what it returns) but works from the right one, so its end pose is right and the
+    # regression's is not
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    monkeypatch.setattr(registrar, "lead_fallback", False)
+    stage = registrar.network.fine_stage
+    forward = stage.forward
+    handle = stage.register_forward_pre_hook(lambda module, args: (args[0], args[1], _offset(args[2]), *args[3:]))
+    try:
+        monkeypatch.setattr(stage, "forward", lambda m, f, start, w=None: forward(m, f, _offset(start, -1.0), w))
+        res = registrar(fixed, moving, resample_moving=False)
+    finally:
+        handle.remove()
+    choice = res.details["fine_stage_choice"]
+    assert choice["move_mm"] > 50.0
+    assert choice["kept"] == "fine stage" and choice["fine_stage_ncc"] > choice["regression_ncc"]
+    assert target_registration_error(res.params, KNOWN_MOTION, body_points(fixed), center=res.center) < 1.0
+
+
+def test_an_easy_pair_records_the_fine_stages_move_and_runs_no_choice(fast_pair, registrar, monkeypatch):
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    res = registrar(fixed, moving, resample_moving=False)
+    choice = res.details["fine_stage_choice"]
+    assert set(choice) == {"move_mm"} and 0.0 <= choice["move_mm"] <= FINE_STAGE_CHOICE_MM
+    assert "fine_stage_choice" not in res.timings
+    monkeypatch.setattr(registrar, "fine_stage_choice_mm", None)
+    off = registrar(fixed, moving, resample_moving=False)
+    np.testing.assert_allclose(res.params, off.params, atol=1e-9)
+    # the learned network alone has no fine stage to choose against
+    alone = registrar(fixed, moving, resample_moving=False, fine_stage=False)
+    assert "fine_stage_choice" not in alone.details
+
+
+def test_the_regression_estimate_caught_before_the_fine_stage_is_its_coarse_output(fast_pair, registrar):
+    from monai_rigidreg.registration.network_run import _regression_estimates
+
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    _, fixed_t, moving_t = registrar._start_tensors(fixed, moving, np.eye(4))
+    fixed_in = torch.cat([fixed_t, registrar._context(fixed, registrar.network_grid(fixed, moving), None)], 0)
+    net = registrar.network
+    with torch.no_grad():
+        stages = net.forward_stages(moving_t[None], fixed_in[None])
+        with _regression_estimates(net, 1, 1) as caught:
+            params = net.forward_pair(moving_t[None], fixed_in[None])
+    assert len(caught) == 1
+    np.testing.assert_allclose(caught[0], stages["coarse"].double().numpy(), atol=1e-6)
+    np.testing.assert_allclose(params.numpy(), stages["params"].numpy(), atol=1e-6)
+    with _regression_estimates(net, 2, 1) as cascade:  # a cascade runs the fine stage once per step
+        assert cascade is None
+    # nothing stays hooked
+    assert not net.fine_stage._forward_pre_hooks
+
+
+def test_each_starts_regression_estimate_is_in_the_frame_of_its_total(fast_pair, registrar, monkeypatch):
+    # a batch of three starts (the global search's candidates): the fine stage made to return the regression's
+    # estimate unchanged, then moved by a known translation per case (5 mm times the case's index along x)
+    from monai_rigidreg.registration.search import matrix_distance_mm
+
+    fixed, moving = load_volume(fast_pair["fixed"]), load_volume(fast_pair["moving"])
+    center = Grid.from_sitk(moving).center()
+    starts = [params_to_matrix(p, center) for p in
+              ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0], [30.0, -6.0, 4.0, 0.0, 20.0, 0.0], [-8.0, 25.0, 9.0, -20.0, 0.0, 15.0])]
+    stage = registrar.network.fine_stage
+    monkeypatch.setattr(stage, "forward", lambda m, f, start, w=None: (
+        start.clone(), torch.ones(start.shape[0], dtype=torch.bool)))
+    runs = registrar._runs_from(fixed, moving, starts, None, [], {})
+    for run in runs:
+        np.testing.assert_allclose(run.regression_total, run.total, atol=1e-9)
+        np.testing.assert_allclose(run.regression, run.residual, atol=1e-9)
+
+    def moved(m, f, start, w=None):
+        out = start.clone()
+        out[:, 0] += 5.0 * torch.arange(start.shape[0], dtype=start.dtype)
+        return out, torch.zeros(start.shape[0], dtype=torch.bool)
+
+    monkeypatch.setattr(stage, "forward", moved)
+    runs = registrar._runs_from(fixed, moving, starts, None, [], {})
+    for k, run in enumerate(runs):
+        # the start's rotation turns the residual's translation but keeps its length
+        assert matrix_distance_mm(run.total, run.regression_total, np.asarray(body_points(fixed))[:200]) == \
+            pytest.approx(5.0 * k, abs=1e-6)
+        np.testing.assert_allclose(run.total, run.start @ params_to_matrix(run.residual, run.grid.center()),
+                                   atol=1e-9)
