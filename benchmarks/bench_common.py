@@ -124,7 +124,7 @@ def apply_registrar_options(registrar: Any, args: argparse.Namespace) -> None:
         return
     if args.native_final_norm_mm is not None:
         registrar.native_final_norm_mm = float(args.native_final_norm_mm)
-    choice = getattr(args, "fine_stage_choice_mm", None)
+    choice = args.fine_stage_choice_mm
     if choice is not None:
         registrar.fine_stage_choice_mm = None if choice == "off" else float(choice)
 

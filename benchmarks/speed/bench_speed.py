@@ -102,13 +102,13 @@ def make_pairs(ct_path: Path, folder: Path, n: int, seed: int) -> list[Path]:
     out = []
     for k in range(n):
         case_dir = folder / f"case_{k}"
-        if load_clinical_case(case_dir) is None:
+        case = load_clinical_case(case_dir)
+        if case is None:
             ct = load_planning_ct(ct_path) if ct is None else ct
             case = make_clinical_case(ct, CLINICAL_GROUPS["small"], seed + k, f"case_{k}", spec)
             save_clinical_case(case, case_dir, fixed=ct_path)
         if not (case_dir / "tre_points.npy").is_file():
             ct = load_planning_ct(ct_path) if ct is None else ct
-            case = load_clinical_case(case_dir)
             np.save(case_dir / "tre_points.npy", tre_points(ct, case.matrix, case.fov))
         out.append(case_dir)
     return out

@@ -273,7 +273,7 @@ class LastLevelStage:
         ``kept``: ``"fine stage"`` or ``"regression"``) for the run it judged, and adds its seconds to
         ``timings["fine_stage_choice"]``. Nothing to choose from (no record): the choice off, no fine stage, or a
         cascade (``cascade_steps > 1``, whose fine stage runs once per step)."""
-        limit = getattr(self, "fine_stage_choice_mm", None)
+        limit = self.fine_stage_choice_mm
         run = state.run
         regression_total = run.regression_total
         if limit is None or regression_total is None:
