@@ -1,4 +1,4 @@
-"""The 0.4.6 to 0.4.8 speed-ups of the registration path, each next to the way it replaced (CPU, shipped weights).
+"""The speed-ups of the registration path since 0.4.6, each next to the way it replaced (CPU, shipped weights).
 
 Prints the median seconds of:
 
@@ -6,9 +6,10 @@ Prints the median seconds of:
   on one volume, with the encoder's kernel-3
   convolutions as ``OneDNNConv3d`` (oneDNN directly) and as plain ``nn.Conv3d`` (PyTorch's batch-1 path);
 * the network from three starts one by one and as one batch (``RigidRegistrar._runs_from``);
-* the learned network's local cost volume (``correlation_net.local_cost_volume``, 16 channels on 16^3 cells, radius 2)
-  as its einsum over unfolded windows and as one product and channel sum per shift (tried in 0.4.8, not kept: the
-  "old" column is the alternative here);
+* the learned network's local cost volume (``correlation_net.local_cost_volume``, 16^3 cells, radius 2) as one
+  product and channel sum per shift on channel-last maps with its own backward (0.6.3) and as the einsum over unfolded
+  windows it replaced (autograd's backward): 16 channels at batch 1, the inference size, and forward plus backward
+  at the context network's training size (32 channels, batch 4);
 * the Gauss-Newton Jacobian on the last level's grid (about 1M voxels, two feature channels): from index ramps
   (``fixed_jacobian``) and through the ``[6, 3, N]`` parameter flow it replaced;
 * the masked NCC maps of the global search's 27 rotation templates: one batched FFT (``masked_ncc_maps``) and one
@@ -139,17 +140,26 @@ def main() -> None:
 
     cells = torch.randn(2, 1, 16, 16, 16, 16, generator=torch.Generator().manual_seed(5))
 
-    def cost_per_shift(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, r: int) -> torch.Tensor:
+    def cost_einsum(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, r: int) -> torch.Tensor:
         fm_n, ff_n = torch.nn.functional.normalize(feat_moving, dim=1), torch.nn.functional.normalize(feat_fixed, dim=1)
         x, y, z = ff_n.shape[2:]
         padded = torch.nn.functional.pad(fm_n, (r,) * 6)
         k = 2 * r + 1
-        return torch.stack([(ff_n * padded[:, :, dx:dx + x, dy:dy + y, dz:dz + z]).sum(1)
-                            for dx in range(k) for dy in range(k) for dz in range(k)], dim=1)
+        return torch.cat([torch.einsum("bcxyz,bcxykz->bkxyz", ff_n, padded[:, :, dx:dx + x, dy:dy + y].unfold(4, z, 1))
+                          for dx in range(k) for dy in range(k)], dim=1)
 
-    rows.append(("local cost volume [1, 16, 16^3], radius 2: einsum (kept) | per-shift products (tried in 0.4.8)",
+    rows.append(("local cost volume [1, 16, 16^3], radius 2: per-shift channel-last | einsum (before 0.6.3)",
                  median_time(lambda: local_cost_volume(cells[0], cells[1], 2), args.repeats),
-                 median_time(lambda: cost_per_shift(cells[0], cells[1], 2), args.repeats)))
+                 median_time(lambda: cost_einsum(cells[0], cells[1], 2), args.repeats)))
+    train_cells = torch.randn(2, 4, 32, 16, 16, 16, generator=torch.Generator().manual_seed(6)).requires_grad_(True)
+    upstream = torch.randn(4, 125, 16, 16, 16, generator=torch.Generator().manual_seed(7))
+
+    def cost_with_grad(fn: Callable[..., torch.Tensor]) -> tuple[torch.Tensor, ...]:
+        return torch.autograd.grad((fn(train_cells[0], train_cells[1], 2) * upstream).sum(), (train_cells,))
+
+    rows.append(("local cost volume + backward [4, 32, 16^3] (training): per-shift channel-last | einsum",
+                 median_time(lambda: cost_with_grad(local_cost_volume), args.repeats),
+                 median_time(lambda: cost_with_grad(cost_einsum), args.repeats)))
 
     ramps = median_time(lambda: fixed_jacobian(feats, native), args.repeats)
     flows = median_time(through_flow, args.repeats)
