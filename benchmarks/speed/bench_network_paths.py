@@ -10,6 +10,8 @@ Prints the median seconds of:
   product and channel sum per shift on channel-last maps with its own backward (0.6.3) and as the einsum over unfolded
   windows it replaced (autograd's backward): 16 channels at batch 1, the inference size, and forward plus backward
   at the context network's training size (32 channels, batch 4);
+* the networks' unit feature vectors (``correlation_net.unit_channels``, a 4 mm level's ``[4, 16, 32^3]`` maps) as a
+  sum of squares over the channels (0.6.3) and as ``F.normalize``'s vector norm;
 * the Gauss-Newton Jacobian on the last level's grid (about 1M voxels, two feature channels): from index ramps
   (``fixed_jacobian``) and through the ``[6, 3, N]`` parameter flow it replaced;
 * the masked NCC maps of the global search's 27 rotation templates: one batched FFT (``masked_ncc_maps``) and one
@@ -160,6 +162,13 @@ def main() -> None:
     rows.append(("local cost volume + backward [4, 32, 16^3] (training): per-shift channel-last | einsum",
                  median_time(lambda: cost_with_grad(local_cost_volume), args.repeats),
                  median_time(lambda: cost_with_grad(cost_einsum), args.repeats)))
+
+    from monai_rigidreg.networks.correlation_net import unit_channels
+
+    maps = torch.randn(4, 16, 32, 32, 32, generator=torch.Generator().manual_seed(8))
+    rows.append(("unit channel vectors [4, 16, 32^3]: sum of squares | F.normalize",
+                 median_time(lambda: unit_channels(maps), args.repeats),
+                 median_time(lambda: torch.nn.functional.normalize(maps, dim=1), args.repeats)))
 
     ramps = median_time(lambda: fixed_jacobian(feats, native), args.repeats)
     flows = median_time(through_flow, args.repeats)

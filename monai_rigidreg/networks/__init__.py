@@ -13,6 +13,7 @@ _NAMES = {
     "ContextCorrelationNet": "monai_rigidreg.networks.context_net",
     "CorrelationRigidNet": "monai_rigidreg.networks.correlation_net",
     "local_cost_volume": "monai_rigidreg.networks.correlation_net",
+    "unit_channels": "monai_rigidreg.networks.correlation_net",
     "weighted_rigid_fit": "monai_rigidreg.networks.correlation_net",
     "DualEncoderRigidNet": "monai_rigidreg.networks.rigid_net",
     "FUSIONS": "monai_rigidreg.networks.rigid_net",

@@ -45,7 +45,7 @@ from monai_rigidreg.core.geometry import Grid, matrix_to_params_torch
 from monai_rigidreg.core.image_ops import masked_ncc
 from monai_rigidreg.core.warp import warp_volume
 from monai_rigidreg.networks.blocks import ResidualStage3d
-from monai_rigidreg.networks.correlation_net import local_cost_volume, weighted_rigid_fit
+from monai_rigidreg.networks.correlation_net import local_cost_volume, unit_channels, weighted_rigid_fit
 
 __all__ = ["COARSE_STARTS", "ContextCorrelationNet", "robust_rigid_fit", "context_from_fixed", "subcell_shifts",
            "sparse_cost_volume"]
@@ -294,8 +294,8 @@ class ContextCorrelationNet(nn.Module):
         pooled = F.avg_pool3d(moving, self.context_factor)
         fm = self._encode(self.coarse_encoder, pooled)[-1]
         fc = self._encode(self.coarse_encoder, context)[-1]
-        pm = F.normalize(self.coarse_project(fm).flatten(2), dim=1)  # [B, C, Nm]
-        pc = F.normalize(self.coarse_project(fc).flatten(2), dim=1)  # [B, C, Nc]
+        pm = unit_channels(self.coarse_project(fm).flatten(2))  # [B, C, Nm]
+        pc = unit_channels(self.coarse_project(fc).flatten(2))  # [B, C, Nc]
         logits = torch.bmm(pm.transpose(1, 2), pc) * self.log_temperature[0].exp()  # [B, Nm, Nc]
         prob = torch.softmax(logits, dim=-1)
         matched = (prob @ self.cells_context.to(prob.dtype)).to(torch.float64)  # [B, Nm, 3] CT positions
@@ -330,7 +330,7 @@ class ContextCorrelationNet(nn.Module):
             fm = self.project8(fm_feats[1])
             cost = local_cost_volume(fm, ff, radius).flatten(2).transpose(1, 2)  # [B, N, K^3]
             cells = self.cells8.unsqueeze(0).expand(b, -1, -1)
-            both = torch.cat([F.normalize(ff, dim=1), F.normalize(fm, dim=1)], 1)
+            both = torch.cat([unit_channels(ff), unit_channels(fm)], 1)
             weight = torch.sigmoid(head(both)).flatten(1)
             valid = torch.minimum(F.avg_pool3d((fixed > CONTENT_LEVEL).to(fixed.dtype), stride),
                                   F.avg_pool3d((warped > CONTENT_LEVEL).to(warped.dtype), stride)).flatten(1) > 0.5
@@ -343,8 +343,8 @@ class ContextCorrelationNet(nn.Module):
             cells = self.cells4[index]  # [B, N, 3]
             c = ff.shape[1]
             pick = index[:, None].expand(b, c, -1)
-            both = torch.cat([F.normalize(ff, dim=1).flatten(2).gather(2, pick),
-                              F.normalize(fm, dim=1).flatten(2).gather(2, pick)], 1)
+            both = torch.cat([unit_channels(ff).flatten(2).gather(2, pick),
+                              unit_channels(fm).flatten(2).gather(2, pick)], 1)
             weight = torch.sigmoid(head(both[..., None, None])).flatten(1)
             valid = torch.ones_like(weight, dtype=torch.bool)
             shifts = self.shifts4
@@ -482,8 +482,8 @@ def sparse_cost_volume(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, inde
         :func:`~monai_rigidreg.networks.correlation_net.local_cost_volume` has at those cells, for the cost of ``N``
         cells rather than of the whole grid.
     """
-    fm = F.normalize(feat_moving, dim=1)
-    ff = F.normalize(feat_fixed, dim=1)
+    fm = unit_channels(feat_moving)
+    ff = unit_channels(feat_fixed)
     b, c, x, y, z = ff.shape
     r = int(radius)
     k = 2 * r + 1

@@ -16,6 +16,7 @@ from monai_rigidreg.networks import (
     GaussNewtonStage,
     TwoStageRigidNet,
     local_cost_volume,
+    unit_channels,
     weighted_rigid_fit,
 )
 from monai_rigidreg.networks.correlation_net import _MatchLevel, parabola_shifts
@@ -112,6 +113,24 @@ def test_local_cost_volume_gradient_reaches_only_inputs_that_ask_for_it():
     torch.testing.assert_close(grad, want, atol=1e-10, rtol=1e-10)
     with torch.no_grad():  # inference: no graph, the same values
         torch.testing.assert_close(local_cost_volume(fm, ff, 1), _cost_by_definition(fm, ff, 1), atol=1e-12, rtol=0)
+
+
+def test_unit_channels_is_normalize_along_the_channels():
+    # each voxel's channel vector to unit length (not a spatial axis: a transposed reduction fails it); a zero vector
+    # stays zero as with F.normalize's clamped norm; the gradient is F.normalize's
+    g = torch.Generator().manual_seed(8)
+    x = torch.randn(2, 5, 3, 4, 6, generator=g, dtype=torch.float64)
+    x[1, :, 2, 3, 5] = 0.0
+    x.requires_grad_(True)
+    got = unit_channels(x)
+    want = torch.nn.functional.normalize(x, dim=1)
+    torch.testing.assert_close(got, want, atol=1e-12, rtol=0)
+    torch.testing.assert_close(got.detach().norm(dim=1)[0], torch.ones(3, 4, 6, dtype=torch.float64))
+    assert float(got[1, :, 2, 3, 5].abs().max()) == 0.0
+    weight = torch.randn(got.shape, generator=g, dtype=torch.float64)
+    (a,) = torch.autograd.grad((got * weight).sum(), (x,))
+    (b,) = torch.autograd.grad((want * weight).sum(), (x,))
+    torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
 
 
 def test_parabola_shifts_find_a_subcell_peak_with_its_sign_per_axis():
