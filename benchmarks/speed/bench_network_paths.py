@@ -10,6 +10,8 @@ Prints the median seconds of:
   product and channel sum per shift on channel-last maps with its own backward (0.6.3) and as the einsum over unfolded
   windows it replaced (autograd's backward): 16 channels at batch 1, the inference size, and forward plus backward
   at the context network's training size (32 channels, batch 4);
+* the 4 mm level's cost volume at its selected cells (``context_net.sparse_cost_volume``, 4096 of 32^3 cells, 16
+  channels, radius 1, batch 1) as a product and channel sum (0.6.3) and as the einsum it replaced;
 * the networks' unit feature vectors (``correlation_net.unit_channels``, a 4 mm level's ``[4, 16, 32^3]`` maps) as a
   sum of squares over the channels (0.6.3) and as ``F.normalize``'s vector norm;
 * the Gauss-Newton Jacobian on the last level's grid (about 1M voxels, two feature channels): from index ramps
@@ -163,7 +165,28 @@ def main() -> None:
                  median_time(lambda: cost_with_grad(local_cost_volume), args.repeats),
                  median_time(lambda: cost_with_grad(cost_einsum), args.repeats)))
 
+    from monai_rigidreg.networks.context_net import sparse_cost_volume
     from monai_rigidreg.networks.correlation_net import unit_channels
+
+    fine = torch.randn(2, 1, 16, 32, 32, 32, generator=torch.Generator().manual_seed(9))
+    picked = torch.randperm(32 ** 3, generator=torch.Generator().manual_seed(10))[:4096][None]
+
+    def sparse_einsum(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        # the windows gathered as sparse_cost_volume gathers them, then the einsum of before 0.6.3
+        fm_n, ff_n = unit_channels(feat_moving), unit_channels(feat_fixed)
+        b, c, x, y, z = ff_n.shape
+        padded = torch.nn.functional.pad(fm_n, (1,) * 6).flatten(2)
+        ax = torch.arange(3)
+        offsets = ((ax[:, None, None] * (y + 2) + ax[None, :, None]) * (z + 2) + ax[None, None, :]).reshape(-1)
+        start = ((index // (y * z)) * (y + 2) + (index // z) % y) * (z + 2) + index % z
+        windows = (start[..., None] + offsets).reshape(b, -1)
+        win = padded.gather(2, windows[:, None].expand(b, c, -1)).view(b, c, -1, 27)
+        sel = ff_n.flatten(2).gather(2, index[:, None].expand(b, c, -1))
+        return torch.einsum("bcn,bcnk->bnk", sel, win)
+
+    rows.append(("4 mm level's cost volume at 4096 of 32^3 cells [1, 16], radius 1: product-sum | einsum",
+                 median_time(lambda: sparse_cost_volume(fine[0], fine[1], picked, 1), args.repeats),
+                 median_time(lambda: sparse_einsum(fine[0], fine[1], picked), args.repeats)))
 
     maps = torch.randn(4, 16, 32, 32, 32, generator=torch.Generator().manual_seed(8))
     rows.append(("unit channel vectors [4, 16, 32^3]: sum of squares | F.normalize",
