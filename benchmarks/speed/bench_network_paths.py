@@ -6,10 +6,10 @@ Prints the median seconds of:
   on one volume, with the encoder's kernel-3
   convolutions as ``OneDNNConv3d`` (oneDNN directly) and as plain ``nn.Conv3d`` (PyTorch's batch-1 path);
 * the network from three starts one by one and as one batch (``RigidRegistrar._runs_from``);
-* the learned network's local cost volume (``correlation_net.local_cost_volume``, 16^3 cells, radius 2) as one
-  product and channel sum per shift on channel-last maps with its own backward (0.6.3) and as the einsum over unfolded
-  windows it replaced (autograd's backward): 16 channels at batch 1, the inference size, and forward plus backward
-  at the context network's training size (32 channels, batch 4);
+* the learned network's local cost volume (``correlation_net.local_cost_volume``, 16^3 cells, radius 2) on
+  channel-last maps with its own backward (0.6.3) and as the einsum over unfolded windows it replaced (autograd's
+  backward): 32 channels at batch 1, the inference size, and forward plus backward at the context network's
+  training size (batch 4);
 * the 4 mm level's cost volume at its selected cells (``context_net.sparse_cost_volume``, 4096 of 32^3 cells, 16
   channels, radius 1, batch 1) as a product and channel sum (0.6.3) and as the einsum it replaced;
 * the networks' unit feature vectors (``correlation_net.unit_channels``, a 4 mm level's ``[4, 16, 32^3]`` maps) as a
@@ -142,7 +142,7 @@ def main() -> None:
 
     from monai_rigidreg.networks.correlation_net import local_cost_volume
 
-    cells = torch.randn(2, 1, 16, 16, 16, 16, generator=torch.Generator().manual_seed(5))
+    cells = torch.randn(2, 1, 32, 16, 16, 16, generator=torch.Generator().manual_seed(5))
 
     def cost_einsum(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, r: int) -> torch.Tensor:
         fm_n, ff_n = torch.nn.functional.normalize(feat_moving, dim=1), torch.nn.functional.normalize(feat_fixed, dim=1)
@@ -152,7 +152,7 @@ def main() -> None:
         return torch.cat([torch.einsum("bcxyz,bcxykz->bkxyz", ff_n, padded[:, :, dx:dx + x, dy:dy + y].unfold(4, z, 1))
                           for dx in range(k) for dy in range(k)], dim=1)
 
-    rows.append(("local cost volume [1, 16, 16^3], radius 2: per-shift channel-last | einsum (before 0.6.3)",
+    rows.append(("local cost volume [1, 32, 16^3], radius 2: channel-last | einsum (before 0.6.3)",
                  median_time(lambda: local_cost_volume(cells[0], cells[1], 2), args.repeats),
                  median_time(lambda: cost_einsum(cells[0], cells[1], 2), args.repeats)))
     train_cells = torch.randn(2, 4, 32, 16, 16, 16, generator=torch.Generator().manual_seed(6)).requires_grad_(True)
@@ -161,7 +161,7 @@ def main() -> None:
     def cost_with_grad(fn: Callable[..., torch.Tensor]) -> tuple[torch.Tensor, ...]:
         return torch.autograd.grad((fn(train_cells[0], train_cells[1], 2) * upstream).sum(), (train_cells,))
 
-    rows.append(("local cost volume + backward [4, 32, 16^3] (training): per-shift channel-last | einsum",
+    rows.append(("local cost volume + backward [4, 32, 16^3] (training): channel-last | einsum",
                  median_time(lambda: cost_with_grad(local_cost_volume), args.repeats),
                  median_time(lambda: cost_with_grad(cost_einsum), args.repeats)))
 
