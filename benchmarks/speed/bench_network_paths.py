@@ -12,8 +12,6 @@ Prints the median seconds of:
   training size (batch 4);
 * the 4 mm level's cost volume at its selected cells (``context_net.sparse_cost_volume``, 4096 of 32^3 cells, 16
   channels, radius 1, batch 1) as a product and channel sum (0.6.3) and as the einsum it replaced;
-* the sampling points of a 102^3 grid (the last level's size) under one transform (``core.warp.affine_grid``, 0.6.3)
-  and as ``F.affine_grid``;
 * the networks' unit feature vectors (``correlation_net.unit_channels``, a 4 mm level's ``[4, 16, 32^3]`` maps) as a
   sum of squares over the channels (0.6.3) and as ``F.normalize``'s vector norm;
 * the Gauss-Newton Jacobian on the last level's grid (about 1M voxels, two feature channels): from index ramps
@@ -190,13 +188,6 @@ def main() -> None:
                  median_time(lambda: sparse_cost_volume(fine[0], fine[1], picked, 1), args.repeats),
                  median_time(lambda: sparse_einsum(fine[0], fine[1], picked), args.repeats)))
 
-    from monai_rigidreg.core.warp import affine_grid
-
-    theta = torch.randn(1, 3, 4, generator=torch.Generator().manual_seed(11))
-    rows.append(("sampling points of a 102^3 grid: core.warp.affine_grid | F.affine_grid",
-                 median_time(lambda: affine_grid(theta, (102, 102, 102)), args.repeats),
-                 median_time(lambda: torch.nn.functional.affine_grid(theta, [1, 1, 102, 102, 102], align_corners=True),
-                             args.repeats)))
     maps = torch.randn(4, 16, 32, 32, 32, generator=torch.Generator().manual_seed(8))
     rows.append(("unit channel vectors [4, 16, 32^3]: sum of squares | F.normalize",
                  median_time(lambda: unit_channels(maps), args.repeats),

@@ -1,10 +1,10 @@
 """Differentiable rigid resampling of volumes in physical space (the torch twin of ``SimpleITK.Resample``).
 
 The normalized ``theta`` comes from :func:`monai_rigidreg.core.geometry.normalized_theta`; sampling is torch's
-``affine_grid`` (:func:`affine_grid` here: the same points, faster) + ``grid_sample`` with ``align_corners=True``:
-what MONAI's :class:`monai.networks.layers.AffineTransform` (``normalized=True``, ``reverse_indexing=False``)
-computes, called directly so that the register path does not import MONAI (see
-:mod:`monai_rigidreg.core.grid_sampling`); ``tests/core/test_warp.py`` checks the two agree value for value.
+``affine_grid`` + ``grid_sample`` with ``align_corners=True``: what MONAI's
+:class:`monai.networks.layers.AffineTransform` (``normalized=True``, ``reverse_indexing=False``) computes, called
+directly so that the register path does not import MONAI (see :mod:`monai_rigidreg.core.grid_sampling`);
+``tests/test_warp.py`` checks the two agree value for value.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from monai_rigidreg.core.geometry import Grid, index_to_normalized, normalized_theta, params_to_matrix_torch
 
-__all__ = ["affine_grid", "normalized_points", "sample_normalized", "warp_points", "warp_volume", "warp_volume_many",
+__all__ = ["normalized_points", "sample_normalized", "warp_points", "warp_volume", "warp_volume_many",
            "warp_volume_params"]
 
 MODES = ("bilinear", "nearest")
@@ -77,29 +77,7 @@ def _sample_points(moving: torch.Tensor, matrices: torch.Tensor, fixed_grid: Gri
     _check_moving(moving, moving_grid, mode, padding_mode, array_order)
     theta = normalized_theta(matrices.to(torch.float64), fixed_grid, moving_grid, array_order).to(moving.dtype)
     out_size = tuple(fixed_grid.size) if array_order == "xyz" else tuple(fixed_grid.size)[::-1]
-    return affine_grid(theta[:, :3], out_size)
-
-
-def affine_grid(theta: torch.Tensor, size: tuple[int, ...] | list[int]) -> torch.Tensor:
-    """``F.affine_grid(theta, [K, C, *size], align_corners=True)`` for 3D grids: ``theta`` ``[K, 3, 4]``,
-    ``size`` ``(D, H, W)`` -> ``[K, D, H, W, 3]`` in ``theta``'s dtype, differentiable in ``theta``.
-
-    The same points (within float rounding; a one-voxel axis at the normalized coordinate 0, as torch's), summed from
-    one ramp per axis by broadcasting: torch's multiplies a ``[D H W, 4]`` base grid by ``theta``, a matrix product
-    with an inner dimension of 4 that took 5-6x the time on 2 cores (102^3: 46 ms instead of 8 ms;
-    ``benchmarks/speed/bench_network_paths.py``).
-
-    Example:
-        >>> theta = torch.tensor([[[1.0, 0.0, 0.0, 0.5], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]]])
-        >>> [round(v, 4) for v in affine_grid(theta, (2, 3, 4))[0, 0, 0, :, 0].tolist()]  # the W ramp + 0.5
-        [-0.5, 0.1667, 0.8333, 1.5]
-    """
-    d, h, w = (torch.linspace(-1.0, 1.0, n, dtype=theta.dtype, device=theta.device) if n > 1
-               else torch.zeros(1, dtype=theta.dtype, device=theta.device) for n in size)
-    along_w = w[None, :, None] * theta[:, None, :, 0]  # [K, W, 3]
-    along_h = torch.addcmul(theta[:, None, :, 3], h[None, :, None], theta[:, None, :, 1])  # [K, H, 3], + offset
-    along_d = d[None, :, None] * theta[:, None, :, 2]  # [K, D, 3]
-    return (along_d[:, :, None, None, :] + along_h[:, None, :, None, :]) + along_w[:, None, None, :, :]
+    return F.affine_grid(theta[:, :3], [matrices.shape[0], moving.shape[1], *out_size], align_corners=True)
 
 
 def warp_points(moving: torch.Tensor, matrix: torch.Tensor, points: torch.Tensor, fixed_grid: Grid, moving_grid: Grid,
