@@ -496,6 +496,5 @@ def sparse_cost_volume(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, inde
     windows = (start[..., None] + offsets).reshape(b, -1)  # [B, N K^3]
     win = padded.gather(2, windows[:, None].expand(b, c, -1)).view(b, c, -1, k ** 3)
     sel = ff.flatten(2).gather(2, index[:, None].expand(b, c, -1))  # [B, C, N]
-    # a product and a sum over whole channel planes: as an einsum this ran as N products of [1, C] x [C, K], 3x the
-    # time at batch 1 (benchmarks/speed/bench_network_paths.py)
+    # a product and a channel sum: an einsum ran as N tiny matrix products, 3x the time (bench_network_paths.py)
     return (sel.unsqueeze(-1) * win).sum(1)
