@@ -87,11 +87,23 @@ def _correlate(fm: torch.Tensor, ff: torch.Tensor, r: int) -> torch.Tensor:
     and 3x at batch 3-4 (the einsum ran as ``X Y Z`` products of ``[1, C] x [C, K]``); one product per shift, 125
     of them, was no faster than the einsum at batch 1 (every operation wakes the worker threads)
     (``benchmarks/speed/bench_network_paths.py``'s cost-volume rows)."""
+    return _correlate_last(*_channel_last(fm, ff, r), r)
+
+
+def _channel_last(fm: torch.Tensor, ff: torch.Tensor, r: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The channel-last copies :func:`_correlate_last` and :meth:`_LocalCorrelation.backward` work on: the fixed map
+    ``[B, X, Y, Z, C]`` and the moving map padded by ``r`` cells with zeros, ``[B, X+2r, Y+2r, Z+2r, C]``."""
+    fixed_last = ff.permute(0, 2, 3, 4, 1).contiguous()
+    padded_last = F.pad(fm, (r, r, r, r, r, r)).permute(0, 2, 3, 4, 1).contiguous()
+    return fixed_last, padded_last
+
+
+def _correlate_last(fixed_last: torch.Tensor, padded_last: torch.Tensor, r: int) -> torch.Tensor:
+    """:func:`_correlate` on :func:`_channel_last`'s copies; ``[B, K**3, X, Y, Z]``."""
     k = 2 * r + 1
-    b, _, x, y, z = ff.shape
-    fixed_last = ff.permute(0, 2, 3, 4, 1).contiguous().unsqueeze(4)  # [B, X, Y, Z, 1, C]
-    padded_last = F.pad(fm, (r, r, r, r, r, r)).permute(0, 2, 3, 4, 1).contiguous()  # [B, X+2r, Y+2r, Z+2r, C]
-    out = ff.new_empty((b, k, k, k, x, y, z))
+    b, x, y, z, _ = fixed_last.shape
+    fixed_last = fixed_last.unsqueeze(4)  # [B, X, Y, Z, 1, C]
+    out = fixed_last.new_empty((b, k, k, k, x, y, z))
     for dx in range(k):
         for dy in range(k):
             # the z windows of the block: [B, X, Y, K, C, Z] -> [B, X, Y, Z, K, C]
@@ -109,20 +121,19 @@ class _LocalCorrelation(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, fm: torch.Tensor, ff: torch.Tensor, r: int) -> torch.Tensor:  # type: ignore[override]
-        ctx.save_for_backward(fm, ff)
+        fixed_last, padded_last = _channel_last(fm, ff, r)
+        ctx.save_for_backward(fixed_last, padded_last)
         ctx.radius = r
-        return _correlate(fm, ff, r)
+        return _correlate_last(fixed_last, padded_last, r)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad: torch.Tensor) -> tuple[torch.Tensor | None, torch.Tensor | None, None]:  # type: ignore[override]
-        fm, ff = ctx.saved_tensors
+        fixed_last, padded_last = ctx.saved_tensors
         r = ctx.radius
         k = 2 * r + 1
-        x, y, z = ff.shape[2:]
+        x, y, z = fixed_last.shape[1:4]
         need_fm, need_ff = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
-        fixed_last = ff.permute(0, 2, 3, 4, 1).contiguous()
-        padded_last = F.pad(fm, (r, r, r, r, r, r)).permute(0, 2, 3, 4, 1).contiguous()
         grad_fixed = torch.zeros_like(fixed_last) if need_ff else None
         grad_padded = torch.zeros_like(padded_last) if need_fm else None
         # cost[:, i] = sum_c ff * padded[window i]: each shift's gradient reaches ff through that window and the
