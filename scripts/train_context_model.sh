@@ -14,6 +14,9 @@
 # scratch; INIT_PARTIAL=1 takes only the tensors whose names and shapes match (a changed design keeping trained parts).
 # ANATOMY_PROB: the share of samples whose anatomy is the CT stretched per axis (RigidPairSampler's anatomy_prob,
 # default 0); a run's value is kept in RUN_DIR/anatomy_prob and reused on --resume (another value: exit status 2).
+# CHANGE_ANATOMY=1 with --resume and ANATOMY_PROB: the run goes on from its checkpoint with this value instead
+# (optimizer, schedule, samples seen kept); RUN_DIR/anatomy_prob_history gets a line "epoch N: OLD -> NEW" (N: the
+# first epoch trained with NEW), so the run's docs can say which samples saw which data.
 # One epoch = 100 iterations of batch 4 = 400 samples; 750 epochs = 300 000 samples.
 # Held out of training (never read here): thorax_4dct_phase00_itkelastix, head_tigre_ct (and the stock Shepp-Logan
 # phantom, the validation set), unless TRAIN_CT_NAMES names them (a leave-one-CT-out fold: scripts/train_loco.sh).
@@ -82,15 +85,32 @@ elif [ -e "$RUN/history.json" ] || ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev
     exit 2
 fi
 same_number() { awk -v a="$1" -v b="$2" 'BEGIN { exit !(a + 0 == b + 0) }'; }
-if [ -f "$RUN/anatomy_prob" ]; then
-    kept=$(cat "$RUN/anatomy_prob")
+CHANGE_ANATOMY=${CHANGE_ANATOMY:-0}
+if [ "$CHANGE_ANATOMY" = 1 ] && { [ -z "$RESUME" ] || [ -z "${ANATOMY_PROB:-}" ]; }; then
+    echo "train_context_model: CHANGE_ANATOMY=1 changes a resumed run's ANATOMY_PROB: give both --resume and" \
+         "ANATOMY_PROB" >&2; exit 2
+fi
+kept=0
+[ -f "$RUN/anatomy_prob" ] && kept=$(cat "$RUN/anatomy_prob")
+change_from=""  # the first epoch trained with the changed value (CHANGE_ANATOMY=1)
+if [ -n "$RESUME" ] && [ -n "${ANATOMY_PROB:-}" ] && ! same_number "$ANATOMY_PROB" "$kept"; then
+    if [ "$CHANGE_ANATOMY" != 1 ]; then
+        echo "train_context_model: $RUN was trained with ANATOMY_PROB=$kept, not $ANATOMY_PROB: nothing was changed" \
+             "(CHANGE_ANATOMY=1 continues it with the new value)" >&2
+        exit 2
+    fi
+    newest=0
+    for f in "$RUN"/models/checkpoint_*epoch=*.pt; do
+        n=${f##*=}; n=${n%.pt}
+        [ "$n" -gt "$newest" ] && newest=$n
+    done
+    change_from=$((newest + 1))
+elif [ -f "$RUN/anatomy_prob" ]; then
     if [ -n "${ANATOMY_PROB:-}" ] && ! same_number "$ANATOMY_PROB" "$kept"; then
         echo "train_context_model: $RUN was trained with ANATOMY_PROB=$kept, not $ANATOMY_PROB: nothing was changed" >&2
         exit 2
     fi
     ANATOMY_PROB=$kept
-elif [ -n "$RESUME" ] && [ -n "${ANATOMY_PROB:-}" ] && ! same_number "$ANATOMY_PROB" 0; then
-    echo "train_context_model: $RUN was trained without ANATOMY_PROB: nothing was changed" >&2; exit 2
 fi
 export OMP_WAIT_POLICY=PASSIVE
 if [ ! -f "$DATA/train.json" ]; then
@@ -105,7 +125,12 @@ if [ "${PREPARE_DATA_ONLY:-0}" = 1 ]; then  # the checks and the data, no traini
 fi
 list() { local out="[" sep=""; for v in "$@"; do out+="$sep'$v'"; sep=","; done; echo "$out]"; }
 mkdir -p "$RUN"
-if [ -n "${ANATOMY_PROB:-}" ] && [ ! -f "$RUN/anatomy_prob" ]; then echo "$ANATOMY_PROB" > "$RUN/anatomy_prob"; fi
+if [ -n "$change_from" ]; then
+    echo "epoch $change_from: $kept -> $ANATOMY_PROB" >> "$RUN/anatomy_prob_history"
+    echo "$ANATOMY_PROB" > "$RUN/anatomy_prob"
+elif [ -n "${ANATOMY_PROB:-}" ] && [ ! -f "$RUN/anatomy_prob" ]; then
+    echo "$ANATOMY_PROB" > "$RUN/anatomy_prob"
+fi
 python -m monai.bundle run \
     --config_file "['bundles/cbct_ct_rigid/configs/train.json','bundles/cbct_ct_rigid/configs/train_context.json']" \
     --bundle_root bundles/cbct_ct_rigid --output_dir "$RUN" --ckpt_dir "$RUN/models" \

@@ -7,6 +7,8 @@ import os
 import re
 from pathlib import Path
 
+from conftest import listing
+
 from monai_rigidreg.io.shared_data import HELD_OUT_CTS, TRAINING_CTS, training_ct_paths
 
 REPO = Path(__file__).resolve().parents[1]
@@ -206,3 +208,41 @@ def test_the_training_script_keeps_a_run_s_anatomy_stretch(tmp_path):
     same = subprocess.run(["bash", script, str(run_dir), "1"], env={**base, "ANATOMY_PROB": "0.50"},
                           capture_output=True, text=True, timeout=60)
     assert same.returncode == 0, same.stderr  # the same number written otherwise
+
+
+def test_a_resumed_run_changes_its_anatomy_stretch_only_when_asked(tmp_path):
+    """A run trained without the stretch, resumed with ``ANATOMY_PROB=0.5``: refused (exit status 2, the way named,
+    the folder as it was) unless ``CHANGE_ANATOMY=1``, which passes the checks; ``CHANGE_ANATOMY=1`` without
+    ``--resume`` is refused."""
+    import subprocess
+
+    import torch
+    from monai.bundle import ConfigParser
+
+    data, shared = _fake_data(tmp_path)
+    (data / "clinical").mkdir()
+    (data / "clinical" / "dataset.json").write_text("{}")
+    run_dir = tmp_path / "run"
+    (run_dir / "models").mkdir(parents=True)
+    parser = ConfigParser()
+    configs = REPO / "bundles" / "cbct_ct_rigid" / "configs"
+    parser.read_config([str(configs / "train.json"), str(configs / "train_context.json")])
+    torch.save({"network": parser.get_parsed_content("network_def").state_dict()},
+               run_dir / "models" / "checkpoint_checkpoint_epoch=7.pt")
+    before = listing(run_dir)
+    base = {**os.environ, "TRAIN_CT_NAMES": " ".join(TRAINING_CTS), "SHARED": str(shared), "DATA": str(data),
+            "PREPARE_DATA_ONLY": "1", "ANATOMY_PROB": "0.5"}
+    script = str(REPO / "scripts" / "train_context_model.sh")
+
+    def run(*args, **env):
+        return subprocess.run(["bash", script, str(run_dir), *args], env={**base, **env}, capture_output=True,
+                              text=True, timeout=300)
+
+    refused = run("9", "--resume")
+    assert refused.returncode == 2 and "ANATOMY_PROB=0, not 0.5" in refused.stderr
+    assert "CHANGE_ANATOMY=1" in refused.stderr
+    new_run = run("9", CHANGE_ANATOMY="1")
+    assert new_run.returncode == 2 and "--resume" in new_run.stderr
+    changed = run("9", "--resume", CHANGE_ANATOMY="1")
+    assert changed.returncode == 0, changed.stderr
+    assert listing(run_dir) == before  # PREPARE_DATA_ONLY: checks only, nothing written
