@@ -14,8 +14,10 @@ and the last level polishes it. :class:`LeadPath` (a stage group of
    with ``--roi``, the region's block check; :func:`~monai_rigidreg.registration.confidence.confidence_score`
    without the swap term), the share of the CBCT's field of view that the estimate places inside the CT
    (``fov_in_ct`` of :func:`~monai_rigidreg.registration.overlap.overlap_shares`, on the field-of-view sample the
-   overlap checks take once), how far the last level moved the network's estimate, and whether the estimate lies
-   inside the motion range the network was trained on;
+   overlap checks take once), how far the last level moved the network's estimate, whether the estimate lies
+   inside the motion range the network was trained on, and whether the network's final estimate stands (where the
+   fine-stage choice kept the regression's end pose instead, two of the network's estimates lead to different
+   optima and the one kept may be a wrong one that matches well: :data:`LEAD_CHOICE_FALLBACK`);
 4. only where the check fails, the fallback (:meth:`LeadPath._fallback`): the global search and the network from
    its candidates (:class:`~monai_rigidreg.registration.search.StartChoice`, the winner by image match), the last
    level again if another start won, and the full confidence with the swapped-input estimate (which may replace the
@@ -24,10 +26,11 @@ and the last level polishes it. :class:`LeadPath` (a stage group of
 
 ``details["path"]`` says which path ran (``"network-led"`` or ``"thorough"``), ``details["lead_check"]`` holds the
 check's numbers and ``details["fallback"]`` whether the fallback ran and why (``reasons``: ``"confidence"``,
-``"overlap"``, ``"polish"``, ``"range"``). Without the fallback the result's confidence is the calibrated one from
-the check's own signals (stage 8, :meth:`~monai_rigidreg.registration.confidence.ConfidenceStage._assess` with
-``cheap``: computed once), the same model as on the thorough path. The thresholds below were measured with ``python
--m benchmarks.accuracy.bench_lead_check`` (``docs/results.md``, "The network leads").
+``"overlap"``, ``"polish"``, ``"range"``, ``"choice"``). Without the fallback the result's confidence is the
+calibrated one from the check's own signals (stage 8,
+:meth:`~monai_rigidreg.registration.confidence.ConfidenceStage._assess` with ``cheap``: computed once), the same model
+as on the thorough path. The thresholds below were measured with ``python -m benchmarks.accuracy.bench_lead_check``
+(``docs/results.md``, "The network leads").
 """
 
 from __future__ import annotations
@@ -43,8 +46,8 @@ from monai_rigidreg.registration.overlap import fov_sample, overlap_shares
 if TYPE_CHECKING:
     from monai_rigidreg.registration.state import Background, RegistrationState
 
-__all__ = ["LEAD_CONFIDENCE", "LEAD_MIN_OVERLAP", "LEAD_POLISH_MAX_MM", "LEAD_RANGE_MM", "LEAD_RANGE_DEG",
-           "LeadPath"]
+__all__ = ["LEAD_CHOICE_FALLBACK", "LEAD_CONFIDENCE", "LEAD_MIN_OVERLAP", "LEAD_POLISH_MAX_MM", "LEAD_RANGE_MM",
+           "LEAD_RANGE_DEG", "LeadPath"]
 
 LEAD_CONFIDENCE = 0.8
 """The check fails where the cheap signals' score (:func:`~monai_rigidreg.registration.confidence.confidence_score`
@@ -68,6 +71,16 @@ retuned")."""
 LEAD_RANGE_DEG = 45.0
 """Likewise for the rotation angles (degrees): the shipped network's training range on all three axes at once.
 The paper protocol's 30-degree cases stay on the led path."""
+
+
+LEAD_CHOICE_FALLBACK = True
+"""The check fails (``"choice"``) where the fine-stage choice
+(:meth:`~monai_rigidreg.registration.last_level.LastLevelStage._fine_stage_choice`) kept the regression's end pose
+over the fine stage's: the network's own final estimate did not stand, so the search and the swapped-input estimate
+judge the kept pose. On a held-out abdomen's clinical CBCT a leave-one-CT-out network's regression led to a pose
+about one vertebral level off (38 mm) that matched better than the fine stage's and passed every cheap test
+(confidence 0.9994); the fallback's swapped-input estimate matched better still and ended 0.3 mm off
+(``docs/trust.md``, "The fine-stage choice judged")."""
 
 
 class LeadPath:
@@ -130,6 +143,8 @@ class LeadPath:
             reasons.append("polish")
         if max_t > LEAD_RANGE_MM or max_r > LEAD_RANGE_DEG:
             reasons.append("range")
+        if LEAD_CHOICE_FALLBACK and (state.details.get("fine_stage_choice") or {}).get("kept") == "regression":
+            reasons.append("choice")
         state.details["lead_check"] = {
             "confidence": round(float(signals["confidence"]), 4), "local_gain": round(signals["local_gain"], 5),
             "tissue_on_air": round(signals["tissue_on_air"], 4),

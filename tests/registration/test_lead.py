@@ -190,6 +190,14 @@ def test_where_the_fine_stage_carries_a_right_estimate_away_the_regressions_goes
     assert target_registration_error(res.params, KNOWN_MOTION, points, center=res.center) < 1.0
     # the kept pose's last level is the one recorded: it polished the regression's estimate (a few tenths of a mm)
     assert res.details["native_level"]["change_mm"] < LEAD_POLISH_MAX_MM and not res.flagged
+    # the network's own final estimate was overruled: the check fails on "choice", and with the fallback on the
+    # search and the swapped-input estimate judge the kept pose (here they keep it)
+    assert res.details["lead_check"]["reasons"] == ["choice"]
+    monkeypatch.setattr(registrar, "lead_fallback", True)
+    led = registrar(fixed, moving, resample_moving=False)
+    assert led.details["fallback"] == {"run": True, "reasons": ["choice"]} and "global_search" in led.timings
+    assert target_registration_error(led.params, KNOWN_MOTION, points, center=led.center) < 1.0
+    monkeypatch.setattr(registrar, "lead_fallback", False)
     # the run that goes on carries the regression's estimate (what the fallback's choice between starts compares),
     # and on the thorough path the swapped-input estimate started beside the last level is computed again
     seen = []
@@ -224,6 +232,7 @@ def test_where_the_fine_stage_corrects_a_wrong_regression_its_estimate_goes_on(f
     choice = res.details["fine_stage_choice"]
     assert choice["move_mm"] > 50.0
     assert choice["kept"] == "fine stage" and choice["fine_stage_ncc"] > choice["regression_ncc"]
+    assert "choice" not in res.details["lead_check"]["reasons"]  # the network's final estimate stands
     assert target_registration_error(res.params, KNOWN_MOTION, body_points(fixed), center=res.center) < 1.0
 
 
