@@ -60,6 +60,7 @@ def main() -> int:
     from monai_rigidreg.engine.coarse_pretrain import pretrain_coarse
     from monai_rigidreg.engine.handlers import load_matching_weights
     from monai_rigidreg.engine.sampler import MotionRange
+    from monai_rigidreg.engine.threads import ThreadTuner
     from monai_rigidreg.io.shared_data import training_ct_paths
 
     torch.set_num_threads(args.threads)
@@ -90,7 +91,9 @@ def main() -> int:
                      r["step"], r["samples"], r["band_mm"], r["band_deg"], r["match_nats"], r["near_share"],
                      r["seconds"])
 
-    history = pretrain_coarse(model.regression, samples, schedule, batch_size=args.batch, lr=args.lr, on_log=show)
+    tuner = ThreadTuner(max_threads=args.threads)  # the thread count that runs faster beside what else runs
+    history = pretrain_coarse(model.regression, samples, schedule, batch_size=args.batch, lr=args.lr, on_log=show,
+                              on_step=tuner.tick)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     torch.save(model.state_dict(), args.output)
     if args.log is not None:

@@ -15,6 +15,7 @@ _MODULES = {
     "inferer": ("StagedInferer",),
     "metrics": ("RigidErrorHandler", "RigidErrorMetric", "error_handlers", "from_registration_output"),
     "sampler": ("MotionRange", "RigidPairSampler", "load_sources"),
+    "threads": ("ThreadTuner",),
 }
 _NAMES = {name: f"monai_rigidreg.engine.{module}" for module, names in _MODULES.items() for name in names}
 __all__ = list(_NAMES)

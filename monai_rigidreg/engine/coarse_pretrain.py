@@ -61,8 +61,8 @@ def coarse_step(net: Any, batch: Sequence[dict[str, Any]]) -> tuple[torch.Tensor
 
 def pretrain_coarse(net: Any, samples: Callable[[MotionRange], Iterator[dict[str, Any]]],
                     schedule: Sequence[tuple[MotionRange, int]], batch_size: int = 4, lr: float = 1e-3,
-                    log_every: int = 25, on_log: Callable[[dict[str, float]], None] | None = None
-                    ) -> list[dict[str, float]]:
+                    log_every: int = 25, on_log: Callable[[dict[str, float]], None] | None = None,
+                    on_step: Callable[[], None] | None = None) -> list[dict[str, float]]:
     """Train the coarse level of ``net`` (a ``ContextCorrelationNet``) alone, band after band.
 
     Args:
@@ -73,6 +73,7 @@ def pretrain_coarse(net: Any, samples: Callable[[MotionRange], Iterator[dict[str
         batch_size, lr: per step; Adam, one optimizer over the whole schedule.
         log_every: a record every this many steps (and at the end of each band).
         on_log: called with each record.
+        on_step: called after each step (e.g. :meth:`~monai_rigidreg.engine.threads.ThreadTuner.tick`).
 
     Returns:
         The records: ``step``, ``samples``, ``band_mm``, ``band_deg``, ``match_nats`` and ``near_share`` (means
@@ -93,6 +94,8 @@ def pretrain_coarse(net: Any, samples: Callable[[MotionRange], Iterator[dict[str
             loss.backward()
             opt.step()
             step += 1
+            if on_step is not None:
+                on_step()
             losses.append(float(loss.detach()))
             near.append(share)
             if step % log_every == 0 or k == int(steps) - 1:
