@@ -28,7 +28,8 @@ class ThreadTuner:
 
     Iterations are timed between calls of :meth:`tick` (one per iteration) in windows of ``window``. After a window
     at the current count, a probe window runs at the other count where the window was ``slowdown`` times slower
-    than the current count's reference (the load changed), and every ``probe_every`` windows otherwise (the load
+    than the current count's reference (the load changed), after the first ``first_probe`` windows (a run started
+    beside other work has no faster window to compare with) and every ``probe_every`` windows otherwise (the load
     may have dropped, which a single thread does not show). The probe's count is kept where its median is more than
     ``margin`` below the window before it (the probe's median becomes the reference); otherwise the count before
     it comes back, with that window's median as the reference. Switches are logged. The first iteration after
@@ -37,6 +38,7 @@ class ThreadTuner:
     Args:
         window: iterations per measurement.
         probe_every: windows between probes at the other count where nothing slowed down.
+        first_probe: windows before the first probe.
         slowdown: the ratio of a window's median to the current count's first one that starts a probe at once.
         margin: how much faster (a share) the probe must be to be kept.
         max_threads: the larger count (default: ``torch.get_num_threads()`` when built).
@@ -51,10 +53,12 @@ class ThreadTuner:
     """
 
     def __init__(self, window: int = 8, probe_every: int = 12, slowdown: float = 1.3, margin: float = 0.1,
-                 max_threads: int | None = None, enabled: bool = True,
+                 max_threads: int | None = None, enabled: bool = True, first_probe: int = 2,
                  clock: Callable[[], float] = time.perf_counter) -> None:
         self.window = max(2, int(window))
         self.probe_every = max(1, int(probe_every))
+        self.first_probe = max(1, int(first_probe))
+        self._probes = 0
         self.slowdown = float(slowdown)
         self.margin = float(margin)
         self.max_threads = int(max_threads or torch.get_num_threads())
@@ -113,8 +117,10 @@ class ThreadTuner:
         self._windows += 1
         if self._baseline is None:
             self._baseline = median
-        if median > self._baseline * self.slowdown or self._windows >= self.probe_every:
+        every = self.first_probe if self._probes == 0 else self.probe_every
+        if median > self._baseline * self.slowdown or self._windows >= every:
             self._before_probe = median
+            self._probes += 1
             self._set(self._other(self.threads))
 
     def _other(self, threads: int) -> int:

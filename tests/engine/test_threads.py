@@ -47,8 +47,10 @@ def test_the_tuner_follows_the_faster_thread_count_as_the_load_comes_and_goes(re
     clock = _Clock()
     tuner = ThreadTuner(window=4, probe_every=5, max_threads=2, clock=clock)
     quiet = _run(tuner, clock, "quiet", 120)
-    # quiet: two threads, apart from the probe windows at one (one window in six), none kept
-    assert tuner.switches == 0 and quiet[:21].count(1) == 0 and quiet.count(1) <= 120 // 6 + 4
+    # quiet: two threads, apart from the probe windows at one (the first after two windows, then one window in
+    # six), none kept
+    assert tuner.switches == 0 and quiet[:9].count(1) == 0 and quiet[9:13] == [1, 1, 1, 1]
+    assert quiet.count(1) <= 120 // 6 + 8
     busy = _run(tuner, clock, "busy", 120)
     # the load comes: one window at two threads is slow enough to probe one at once, and one thread stays, apart
     # from the periodic probes at two
@@ -58,6 +60,15 @@ def test_the_tuner_follows_the_faster_thread_count_as_the_load_comes_and_goes(re
     # the load goes: the next periodic probe at two threads is faster, and two threads stay
     assert tuner.threads == 2 and tuner.switches == 2
     assert again.index(2) <= 5 * 4 + 1 and again[-40:].count(1) <= 2 * 4 + 1  # a probe window at most
+
+
+def test_a_run_started_beside_other_work_finds_one_thread_at_the_first_probe(restore_threads):
+    torch.set_num_threads(2)
+    clock = _Clock()
+    tuner = ThreadTuner(window=4, probe_every=12, max_threads=2, clock=clock)
+    used = _run(tuner, clock, "busy", 40)
+    # no slow-down to see (the first window is already slow): the early probe after two windows finds it
+    assert tuner.threads == 1 and tuner.switches == 1 and used[:9] == [2] * 9 and used[9:] == [1] * 31
 
 
 def test_the_tuner_does_nothing_when_disabled_or_with_one_thread(restore_threads):
