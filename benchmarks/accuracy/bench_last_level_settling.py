@@ -45,40 +45,26 @@ def clean_twin(fixed: Any, moving: Any, truth: np.ndarray) -> Any:
     outside): a CBCT with the CT's own appearance."""
     import SimpleITK as sitk
 
-    from monai_rigidreg.core.geometry import invert_matrix
+    from monai_rigidreg.core.geometry import invert_matrix, matrix_to_sitk
 
-    inverse = invert_matrix(truth)  # a CBCT voxel's point -> the CT point it shows
-    tx = sitk.AffineTransform(3)
-    tx.SetMatrix(inverse[:3, :3].ravel().tolist())
-    tx.SetTranslation(inverse[:3, 3].tolist())
-    return sitk.Resample(sitk.Cast(fixed, sitk.sitkFloat32), moving, tx, sitk.sitkLinear, -1000.0, sitk.sitkFloat32)
-
-
-def mean_distance(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:
-    """Mean distance (mm) between two 4x4 transforms' images of ``points`` (``[n, 3]``)."""
-    from monai_rigidreg.core.geometry import transform_points
-
-    return float(np.linalg.norm(transform_points(a, points) - transform_points(b, points), axis=1).mean())
+    # resampling maps each CBCT voxel's point to the CT point it shows: the inverse of the truth
+    return sitk.Resample(sitk.Cast(fixed, sitk.sitkFloat32), moving, matrix_to_sitk(invert_matrix(truth)),
+                         sitk.sitkLinear, -1000.0, sitk.sitkFloat32)
 
 
 def run_passes(registrar: Any, fixed: Any, moving: Any, fov: Any, start: np.ndarray, truth: np.ndarray,
                points: np.ndarray, passes: int) -> list[dict[str, float]]:
-    """``passes`` passes of the last level (the registrar's settings, no match region), each from the last one's
-    result: per pass the move, the TRE after it and the pass's own ``expected_tre_mm``."""
-    from monai_rigidreg.registration.last_level import refine_native
+    """``passes`` passes of the last level (one pass each of the registrar's own ``_native``, no match region),
+    each from the last one's result: per pass the move, the TRE after it and the pass's own ``expected_tre_mm``."""
+    from monai_rigidreg.core.geometry import Grid
+    from monai_rigidreg.registration.search import matrix_distance_mm
 
-    stage = registrar.network.fine_stage
-    sigma = stage.highpass_sigma_mm if registrar.native_highpass_sigma_mm is None \
-        else registrar.native_highpass_sigma_mm
-    settings = registrar._pass_settings(sigma, registrar.native_bias_degree)
+    grid = Grid.from_sitk(moving)  # only where _native measures its own move; the moves here are over ``points``
     rows, matrix = [], start
     for _ in range(passes):
-        report: dict[str, Any] = {}
-        new, _ = refine_native(fixed, moving, matrix, fov, [], report=report, **settings,
-                               contrast_norm_sigma_mm=getattr(stage, "contrast_norm_sigma_mm", None),
-                               intensity_weight=getattr(stage, "intensity_weight", 1.0))
-        rows.append({"move": mean_distance(new, matrix, points), "tre": mean_distance(new, truth, points),
-                     "expected": float(report.get("expected_tre_mm", float("nan")))})
+        new, detail = registrar._native(fixed, moving, matrix, fov, [], grid, converge=False)
+        rows.append({"move": matrix_distance_mm(new, matrix, points), "tre": matrix_distance_mm(new, truth, points),
+                     "expected": float(detail.get("expected_tre_mm", float("nan")))})
         matrix = new
     return rows
 
@@ -97,6 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     import monai_rigidreg
     from monai_rigidreg.core.geometry import params_to_matrix
     from monai_rigidreg.evaluation.evaluate import body_points
+    from monai_rigidreg.registration.search import matrix_distance_mm
     from monai_rigidreg.simulation import simulate_pair
 
     registrar = monai_rigidreg.RigidRegistrar.from_bundle(device="cpu")
@@ -120,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
                 result = monai_rigidreg.register(fixed, moving, model=registrar, moving_fov=fov,
                                                  resample_moving=False)
                 level = result.details.get("native_level", {})
-                reg_tre = mean_distance(np.asarray(result.matrix), truth, points)
+                reg_tre = matrix_distance_mm(np.asarray(result.matrix), truth, points)
                 out()
                 out(f"## {name}, {variant}")
                 out(f"default path: TRE {reg_tre:.3f} mm, last level {level.get('passes')} passes, the last moved "
