@@ -43,20 +43,13 @@ def main(argv: list[str] | None = None) -> int:
     args, out, monitor, t0 = start_cpu_run(ap, argv, __spec__.name if __spec__ else "bench_training_threads",
                                            "the bundle's train_context.json network (untrained)", threads=2)
     import numpy as np
-    from monai.bundle import ConfigParser
     from monai.data import list_data_collate
 
-    from monai_rigidreg.bundle.loader import default_bundle_path
+    from benchmarks.speed.bench_training_throughput import context_config, context_sampler
     from monai_rigidreg.engine import RegistrationPrepareBatch, StagedInferer
-    from monai_rigidreg.engine.sampler import RigidPairSampler, load_sources
 
-    configs = default_bundle_path() / "configs"
-    cfg = ConfigParser()
-    cfg.read_config([str(configs / "train.json"), str(configs / "train_context.json")])
-    size, spacing = cfg["network_size"], cfg["network_spacing"]
-    sources = load_sources(datalists=args.datalist, cts=[], network_spacing=spacing[0],
-                           context_spacing=spacing[0] * cfg["context_factor"])
-    sampler = RigidPairSampler(sources, network_size=size, network_spacing=spacing, seed=0)
+    cfg = context_config()
+    sampler, _ = context_sampler(cfg, args.datalist, [])
     rng = np.random.default_rng(0)
     torch.manual_seed(0)
     network = cfg.get_parsed_content("network_def", instantiate=True)

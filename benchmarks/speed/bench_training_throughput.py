@@ -26,6 +26,7 @@ from __future__ import annotations
 import os
 import statistics
 import time
+from typing import Any
 
 import torch
 from monai.bundle import ConfigParser
@@ -118,24 +119,37 @@ def main() -> None:
     print(f"\nload at the end {os.getloadavg()[0]:.2f}")
 
 
+def context_config() -> ConfigParser:
+    """The bundle's ``train.json`` with ``train_context.json`` over it, as ``scripts/train_context_model.sh`` runs."""
+    configs = default_bundle_path() / "configs"
+    cfg = ConfigParser()
+    cfg.read_config([str(configs / "train.json"), str(configs / "train_context.json")])
+    return cfg
+
+
+def context_sampler(cfg: ConfigParser, datalists: list[str], cts: list[str]) -> tuple[Any, float]:
+    """The training run's :class:`RigidPairSampler` over ``datalists`` and ``cts`` (seed 0) and the seconds reading
+    its sources took."""
+    from monai_rigidreg.engine.sampler import RigidPairSampler, load_sources
+
+    size, spacing = cfg["network_size"], cfg["network_spacing"]
+    t0 = time.perf_counter()
+    sources = load_sources(datalists=datalists, cts=cts, network_spacing=spacing[0],
+                           context_spacing=spacing[0] * cfg["context_factor"])
+    load_s = time.perf_counter() - t0
+    return RigidPairSampler(sources, network_size=size, network_spacing=spacing, seed=0), load_s
+
+
 def context_throughput(args) -> None:
     """The data side (one :class:`RigidPairSampler` sample, one core as in the run's worker) and the network side
     (one step of the context network with the match loss) of ``scripts/train_context_model.sh``."""
     import numpy as np
     from monai.data import list_data_collate
 
-    from monai_rigidreg.engine.sampler import RigidPairSampler, load_sources
-
-    configs = default_bundle_path() / "configs"
-    cfg = ConfigParser()
-    cfg.read_config([str(configs / "train.json"), str(configs / "train_context.json")])
+    cfg = context_config()
     size, spacing = cfg["network_size"], cfg["network_spacing"]
     print(f"threads {args.threads}; network grid {size} at {spacing} mm; load {os.getloadavg()[0]:.2f}")
-    t0 = time.perf_counter()
-    sources = load_sources(datalists=args.datalist, cts=args.ct, network_spacing=spacing[0],
-                           context_spacing=spacing[0] * cfg["context_factor"])
-    load_s = time.perf_counter() - t0
-    sampler = RigidPairSampler(sources, network_size=size, network_spacing=spacing, seed=0)
+    sampler, load_s = context_sampler(cfg, args.datalist, args.ct)
     rng = np.random.default_rng(0)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as in the run's DataLoader worker
@@ -149,7 +163,7 @@ def context_throughput(args) -> None:
     data_s = statistics.median(times)
     print("\n| data pipeline (RigidPairSampler) | s per sample | samples per second |")
     print("|---|---|---|")
-    print(f"| reading the {len(sources)} sources, once | {load_s:.1f} | - |")
+    print(f"| reading the {len(sampler.sources)} sources, once | {load_s:.1f} | - |")
     print(f"| one sample (one thread) | {data_s:.3f} | {1 / data_s:.1f} |")
     network = cfg.get_parsed_content("network_def", instantiate=True)
     network.train()
