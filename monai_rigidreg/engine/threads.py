@@ -39,7 +39,7 @@ class ThreadTuner:
         window: iterations per measurement.
         probe_every: windows between probes at the other count where nothing slowed down.
         first_probe: windows before the first probe.
-        slowdown: the ratio of a window's median to the current count's first one that starts a probe at once.
+        slowdown: the ratio of a window's median to the current count's reference that starts a probe at once.
         margin: how much faster (a share) the probe must be to be kept.
         max_threads: the larger count (default: ``torch.get_num_threads()`` when built).
         enabled: ``False``: :meth:`tick` does nothing (e.g. training on a GPU).
@@ -68,7 +68,7 @@ class ThreadTuner:
         self.switches = 0
         self._times: list[float] = []
         self._last: float | None = None
-        self._baseline: float | None = None  # the first window's median at the current count
+        self._baseline: float | None = None  # the current count's reference median (see the class doc)
         self._before_probe: float | None = None  # the median of the window before a running probe
         self._windows = 0
 

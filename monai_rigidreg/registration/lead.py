@@ -79,7 +79,7 @@ LEAD_CHOICE_FALLBACK = True
 over the fine stage's: the network's own final estimate did not stand, so the search and the swapped-input estimate
 judge the kept pose. On a held-out abdomen's clinical CBCT a leave-one-CT-out network's regression led to a pose
 about one vertebral level off (38 mm) that matched better than the fine stage's and passed every cheap test
-(confidence 0.9994); the fallback's swapped-input estimate matched better still and ended 0.3 mm off
+(confidence 0.9994); the fallback's swapped-input estimate matched better still and ended 0.35 mm off
 (``docs/trust.md``, "The fine-stage choice judged")."""
 
 
