@@ -19,22 +19,13 @@ shift || true
 RUNS=${RUNS:-training/loco}
 RESULTS=${RESULTS:-benchmarks/results/loco}
 source scripts/loco_split.sh
+source scripts/checkpoints.sh
 loco_real
 folds=("$@")
 [ ${#folds[@]} -gt 0 ] || folds=("${REAL[@]}")
 for hold in "${folds[@]}"; do  # every name checked before any fold runs
     (loco_others loco_folds "$hold") || exit 2
 done
-
-newest_epoch() {  # the newest checkpoint's epoch of run folder $1 (0: none)
-    local f n best=0
-    for f in "$1"/models/checkpoint_*epoch=*.pt; do
-        [ -e "$f" ] || continue
-        n=${f##*=}; n=${n%.pt}
-        [ "$n" -gt "$best" ] && best=$n
-    done
-    echo "$best"
-}
 
 for hold in "${folds[@]}"; do
     run="$RUNS/$hold"

@@ -7,9 +7,12 @@
 #          scripts/train_context_gpu.sh RUN_DIR [OUT_DIR]
 # The training stops itself at the time limit (SIGTERM: the checkpoint of the last complete epoch stays); OUT_DIR
 # (default RUN_DIR) receives the newest checkpoint, history.json, curves.png and train_log.txt.
-# Tested on the CPU at a tiny size (tests/test_scripts.py): DEVICE=cpu MINUTES=1 BATCH=2 EPOCH_LENGTH=2 CASES=1.
+# On the CPU at a tiny size: DEVICE=cpu MINUTES=1 BATCH=2 EPOCH_LENGTH=2 CASES=1. Its own steps (--resume only where
+# RUN_DIR holds a checkpoint, the newest by epoch brought back, the exit status) are tested with a stand-in training
+# script (tests/test_training_cts.py); the training itself is scripts/train_context_model.sh.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/checkpoints.sh
 RUN=${1:?usage: scripts/train_context_gpu.sh RUN_DIR [OUT_DIR]}
 OUT=${2:-$RUN}
 MINUTES=${MINUTES:-9}
@@ -20,7 +23,7 @@ export SAMPLER_DEVICE=${SAMPLER_DEVICE:-$DEVICE}
 export SIM_DEVICE=${SIM_DEVICE:-$DEVICE}
 export WORKERS=${WORKERS:-0}  # samples drawn in the main process, on the device
 resume=()
-if ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev/null 2>&1; then resume=(--resume); fi
+[ "$(newest_epoch "$RUN")" -gt 0 ] && resume=(--resume)
 rc=0
 timeout --signal=TERM "$((MINUTES * 60))" scripts/train_context_model.sh "$RUN" 100000 "${resume[@]}" || rc=$?
 if [ "$rc" -ne 0 ] && [ "$rc" -ne 124 ]; then
@@ -29,8 +32,8 @@ if [ "$rc" -ne 0 ] && [ "$rc" -ne 124 ]; then
 fi
 if [ "$OUT" != "$RUN" ]; then
     mkdir -p "$OUT/models"
-    newest=$(ls -t "$RUN"/models/checkpoint_*epoch=*.pt | head -1)
-    cp "$newest" "$OUT/models/"
+    newest=$(newest_checkpoint "$RUN")
+    [ -n "$newest" ] && cp "$newest" "$OUT/models/"
     for f in history.json curves.png train_log.txt; do [ -f "$RUN/$f" ] && cp "$RUN/$f" "$OUT/"; done
 fi
 echo "train_context_gpu: stopped after ${MINUTES} min (exit status $rc); newest checkpoint in $OUT/models"

@@ -22,6 +22,7 @@
 # phantom, the validation set), unless TRAIN_CT_NAMES names them (a leave-one-CT-out fold: scripts/train_loco.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+source scripts/checkpoints.sh
 DATA=${DATA:-data}
 SHARED=${SHARED:-../shared/data}
 RUN=${1:-training/context_run}
@@ -99,12 +100,7 @@ if [ -n "$RESUME" ] && [ -n "${ANATOMY_PROB:-}" ] && ! same_number "$ANATOMY_PRO
              "(CHANGE_ANATOMY=1 continues it with the new value)" >&2
         exit 2
     fi
-    newest=0
-    for f in "$RUN"/models/checkpoint_*epoch=*.pt; do
-        n=${f##*=}; n=${n%.pt}
-        [ "$n" -gt "$newest" ] && newest=$n
-    done
-    change_from=$((newest + 1))
+    change_from=$(($(newest_epoch "$RUN") + 1))
 elif [ -f "$RUN/anatomy_prob" ]; then
     if [ -n "${ANATOMY_PROB:-}" ] && ! same_number "$ANATOMY_PROB" "$kept"; then
         echo "train_context_model: $RUN was trained with ANATOMY_PROB=$kept, not $ANATOMY_PROB: nothing was changed" >&2

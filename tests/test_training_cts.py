@@ -246,3 +246,64 @@ def test_a_resumed_run_changes_its_anatomy_stretch_only_when_asked(tmp_path):
     changed = run("9", "--resume", CHANGE_ANATOMY="1")
     assert changed.returncode == 0, changed.stderr
     assert listing(run_dir) == before  # PREPARE_DATA_ONLY: checks only, nothing written
+
+
+def test_newest_checkpoint_is_the_largest_epoch_not_the_latest_file(tmp_path):
+    """``scripts/checkpoints.sh``: epoch 10 is newer than epoch 9 (not by the name's sort order, not by file time);
+    a run without checkpoints has epoch 0 and no path."""
+    import os
+    import subprocess
+
+    models = tmp_path / "run" / "models"
+    models.mkdir(parents=True)
+    for epoch in (10, 9, 2):  # epoch 9 and 2 written last: the latest file times
+        (models / f"checkpoint_checkpoint_epoch={epoch}.pt").write_bytes(b"")
+    os.utime(models / "checkpoint_checkpoint_epoch=10.pt", (1_000_000, 1_000_000))
+    lib = REPO / "scripts" / "checkpoints.sh"
+
+    def ask(run: Path) -> list[str]:
+        out = subprocess.run(["bash", "-c", f'source "{lib}"; newest_epoch "$1"; newest_checkpoint "$1"', "x",
+                              str(run)], capture_output=True, text=True, timeout=30)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.split("\n")[:2]
+
+    assert ask(tmp_path / "run") == ["10", str(models / "checkpoint_checkpoint_epoch=10.pt")]
+    assert ask(tmp_path / "empty") == ["0", ""]
+
+
+def test_the_gpu_script_resumes_only_a_started_run_and_brings_back_its_newest_checkpoint(tmp_path):
+    """``scripts/train_context_gpu.sh`` around a stand-in ``train_context_model.sh`` (it records its arguments and
+    writes epochs 9 and 10, then stops as the time limit would, exit status 124): a run folder without a checkpoint
+    starts without ``--resume``, one with a checkpoint gets ``--resume``; OUT_DIR receives the epoch-10 checkpoint and
+    the log; another exit status of the training is the script's own, nothing brought back."""
+    import os
+    import shutil
+    import subprocess
+
+    scripts = tmp_path / "repo" / "scripts"
+    scripts.mkdir(parents=True)
+    for name in ("train_context_gpu.sh", "checkpoints.sh"):
+        shutil.copy(REPO / "scripts" / name, scripts / name)
+    (scripts / "train_context_model.sh").write_text(
+        '#!/usr/bin/env bash\necho "$@" >> "$1/calls"\nmkdir -p "$1/models"\n'
+        'for e in 10 9; do : > "$1/models/checkpoint_checkpoint_epoch=$e.pt"; done\n'
+        'echo log > "$1/train_log.txt"\nexit "${STAND_IN_STATUS:-124}"\n')
+    (scripts / "train_context_model.sh").chmod(0o755)
+    run_dir, out_dir = tmp_path / "run", tmp_path / "out"
+    run_dir.mkdir()
+
+    def gpu(**env: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["bash", str(scripts / "train_context_gpu.sh"), str(run_dir), str(out_dir)],
+                              env={**os.environ, "MINUTES": "1", **env}, capture_output=True, text=True, timeout=60)
+
+    first = gpu()
+    assert first.returncode == 0, first.stderr
+    assert sorted(p.name for p in (out_dir / "models").iterdir()) == ["checkpoint_checkpoint_epoch=10.pt"]
+    assert (out_dir / "train_log.txt").read_text() == "log\n"
+    second = gpu()
+    assert second.returncode == 0, second.stderr
+    calls = (run_dir / "calls").read_text().splitlines()
+    assert calls == [f"{run_dir} 100000", f"{run_dir} 100000 --resume"]
+    shutil.rmtree(out_dir)
+    failed = gpu(STAND_IN_STATUS="3")
+    assert failed.returncode == 3 and "exit status 3" in failed.stderr and not out_dir.exists()
