@@ -323,28 +323,27 @@ class ContextCorrelationNet(nn.Module):
     def _local(self, level: int, fm_feats: list[torch.Tensor], ff: torch.Tensor, total: torch.Tensor,
                fixed_weight: torch.Tensor | None, fixed: torch.Tensor, warped: torch.Tensor
                ) -> tuple[torch.Tensor, dict[str, Any]]:
+        """One pass of a local level: ``ff`` (the fixed image's features at that level) has unit norm along C."""
         b = warped.shape[0]
         scale = self.log_temperature[1 if level == 8 else 2].exp()
         if level == 8:
             radius, stride, head = self.radius[0], 4, self.weight8
-            fm = self.project8(fm_feats[1])
-            cost = local_cost_volume(fm, ff, radius).flatten(2).transpose(1, 2)  # [B, N, K^3]
+            fm = unit_channels(self.project8(fm_feats[1]))
+            cost = local_cost_volume(fm, ff, radius, unit=True).flatten(2).transpose(1, 2)  # [B, N, K^3]
             cells = self.cells8.unsqueeze(0).expand(b, -1, -1)
-            both = torch.cat([unit_channels(ff), unit_channels(fm)], 1)
+            both = torch.cat([ff, fm], 1)
             weight = torch.sigmoid(head(both)).flatten(1)
             valid = torch.minimum(F.avg_pool3d((fixed > CONTENT_LEVEL).to(fixed.dtype), stride),
                                   F.avg_pool3d((warped > CONTENT_LEVEL).to(warped.dtype), stride)).flatten(1) > 0.5
             shifts = self.shifts8
         else:
             radius, stride, head = self.radius[1], 2, self.weight4
-            fm = self._features4(fm_feats)
+            fm = unit_channels(self._features4(fm_feats))
             index = self._select(fixed, warped)  # [B, N]
-            cost = sparse_cost_volume(fm, ff, index, radius)
+            cost = sparse_cost_volume(fm, ff, index, radius, unit=True)
             cells = self.cells4[index]  # [B, N, 3]
-            c = ff.shape[1]
-            pick = index[:, None].expand(b, c, -1)
-            both = torch.cat([unit_channels(ff).flatten(2).gather(2, pick),
-                              unit_channels(fm).flatten(2).gather(2, pick)], 1)
+            pick = index[:, None].expand(b, ff.shape[1], -1)
+            both = torch.cat([ff.flatten(2).gather(2, pick), fm.flatten(2).gather(2, pick)], 1)
             weight = torch.sigmoid(head(both[..., None, None])).flatten(1)
             valid = torch.ones_like(weight, dtype=torch.bool)
             shifts = self.shifts4
@@ -401,7 +400,7 @@ class ContextCorrelationNet(nn.Module):
             moving, fixed = moving.repeat(2, 1, 1, 1, 1), fixed.repeat(2, 1, 1, 1, 1)
             fixed_weight = None if fixed_weight is None else fixed_weight.repeat(2, 1, 1, 1, 1)
         ff_feats = self._encode(self.encoder, fixed)
-        ff = {8: self.project8(ff_feats[1]), 4: self._features4(ff_feats)}
+        ff = {8: unit_channels(self.project8(ff_feats[1])), 4: unit_channels(self._features4(ff_feats))}
         finals = []
         for level, count in ((8, self.passes[0]), (4, self.passes[1])):
             for _ in range(count):
@@ -468,22 +467,23 @@ def subcell_shifts(cost: torch.Tensor, radius: int) -> torch.Tensor:
     return torch.cat(shifts, -1)
 
 
-def sparse_cost_volume(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, index: torch.Tensor, radius: int
-                       ) -> torch.Tensor:
+def sparse_cost_volume(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, index: torch.Tensor, radius: int,
+                       unit: bool = False) -> torch.Tensor:
     """Cosine similarity of the selected fixed cells with the moving cells at integer shifts within ``+-radius``.
 
     Args:
         feat_moving, feat_fixed: ``[B, C, X, Y, Z]`` on the same cell grid (unit norm along C is applied here).
         index: ``[B, N]`` flat (row-major) indices of the fixed cells.
         radius: search radius in cells.
+        unit: the maps have unit norm along C already (``unit_channels``): used as they are.
 
     Returns:
         ``[B, N, K**3]`` (row-major over ``(dx, dy, dz)``; shifts leaving the moving map give 0): what
         :func:`~monai_rigidreg.networks.correlation_net.local_cost_volume` has at those cells, for the cost of ``N``
         cells rather than of the whole grid.
     """
-    fm = unit_channels(feat_moving)
-    ff = unit_channels(feat_fixed)
+    fm = feat_moving if unit else unit_channels(feat_moving)
+    ff = feat_fixed if unit else unit_channels(feat_fixed)
     b, c, x, y, z = ff.shape
     r = int(radius)
     k = 2 * r + 1

@@ -55,13 +55,15 @@ def unit_channels(x: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
     return x / x.square().sum(1, keepdim=True).clamp_min(eps * eps).sqrt()
 
 
-def local_cost_volume(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, radius: int) -> torch.Tensor:
+def local_cost_volume(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, radius: int, unit: bool = False
+                      ) -> torch.Tensor:
     """Cosine similarity of each fixed cell with the moving cells at integer shifts within ``+-radius``.
 
     Args:
         feat_moving, feat_fixed: ``[B, C, X, Y, Z]`` feature maps on the same cell grid (unit norm along C is
             applied here).
         radius: search radius in cells (``K = 2 * radius + 1`` shifts per axis).
+        unit: the maps are unit vectors along C already (:func:`unit_channels`): used as they are.
 
     Returns:
         ``[B, K**3, X, Y, Z]``: entry ``(dx, dy, dz)`` (row-major over ``-radius..radius``) is the similarity of
@@ -73,8 +75,8 @@ def local_cost_volume(feat_moving: torch.Tensor, feat_fixed: torch.Tensor, radiu
         >>> bool(torch.allclose(cost[:, 13], torch.ones(1, 6, 6, 6), atol=1e-5))
         True
     """
-    fm = unit_channels(feat_moving)
-    ff = unit_channels(feat_fixed)
+    fm = feat_moving if unit else unit_channels(feat_moving)
+    ff = feat_fixed if unit else unit_channels(feat_fixed)
     if torch.is_grad_enabled() and (fm.requires_grad or ff.requires_grad):
         return _LocalCorrelation.apply(fm, ff, int(radius))
     return _correlate(fm, ff, int(radius))

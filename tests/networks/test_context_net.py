@@ -72,6 +72,14 @@ def test_sparse_cost_volume_is_the_local_cost_volume_at_the_selected_cells():
     sparse = sparse_cost_volume(fm, ff, index, 2)
     expected = dense.gather(1, index[..., None].expand(-1, -1, 125))
     torch.testing.assert_close(sparse, expected, atol=1e-5, rtol=1e-5)
+    # features of unit norm given as such: the same cosines; ``unit=True`` normalises nothing (twice the features,
+    # four times the products), so the network's one normalisation per map is the only one
+    from monai_rigidreg.networks import unit_channels
+
+    um, uf = unit_channels(fm), unit_channels(ff)
+    torch.testing.assert_close(sparse_cost_volume(um, uf, index, 2, unit=True), sparse, atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(sparse_cost_volume(2 * um, 2 * uf, index, 2, unit=True), 4 * sparse, atol=1e-5,
+                               rtol=1e-5)
 
 
 def test_subcell_shifts_equal_parabola_shifts_inside_the_window():

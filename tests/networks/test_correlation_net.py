@@ -76,6 +76,12 @@ def test_local_cost_volume_is_the_cosine_with_each_shifted_cell():
                     if 0 <= x + dx < 4 and 0 <= y + dy < 6 and 0 <= z + dz < 3:
                         want[:, i, x, y, z] = (uf[:, :, x, y, z] * un[:, :, x + dx, y + dy, z + dz]).sum(1)
     torch.testing.assert_close(cv, want, atol=1e-6, rtol=0)
+    # unit-norm maps given as such (``unit=True``) are used as they are: the same cosines, and twice the features
+    # give four times the products (nothing normalised a second time), with and without gradients
+    torch.testing.assert_close(local_cost_volume(un, uf, r, unit=True), want, atol=1e-6, rtol=0)
+    torch.testing.assert_close(local_cost_volume(2 * un, 2 * uf, r, unit=True), 4 * want, atol=4e-6, rtol=0)
+    twice = local_cost_volume((2 * un).requires_grad_(), 2 * uf, r, unit=True)
+    torch.testing.assert_close(twice.detach(), 4 * want, atol=4e-6, rtol=0)
 
 
 def _cost_by_definition(fm: torch.Tensor, ff: torch.Tensor, r: int) -> torch.Tensor:
