@@ -18,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-__all__ = ["NORMS", "OneDNNConv3d", "ResidualStage3d"]
+__all__ = ["NORMS", "OneDNNConv3d", "ResidualStage3d", "pointwise_columns"]
 
 NORMS = ("INSTANCE", "BATCH", "NONE")
 """Normalisation layers :class:`ResidualStage3d` builds (MONAI's names; a ``(name, kwargs)`` pair passes keyword
@@ -106,3 +106,33 @@ class ResidualStage3d(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return self.conv(x) + self.residual(x)
+
+
+def pointwise_columns(head: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
+    """``head`` (kernel-1 ``nn.Conv3d`` layers between elementwise ones, e.g. a match-weight head) on columns.
+
+    Each kernel-1 ``Conv3d`` runs as ``conv1d`` with its own weights, so the module and its ``state_dict`` stay those
+    of a volume head. Why: the same ``Conv3d`` on the columns viewed as a ``[B, C, N, 1, 1]`` volume took a slow
+    path, 102 ms forward and backward at ``[4, 32, 4096]`` on one core against 4.9 ms as ``conv1d`` (torch 2.13).
+
+    Args:
+        head: the layers, applied in order; every ``nn.Conv3d`` among them has kernel size 1.
+        x: ``[B, C, N]`` features of ``N`` cells.
+
+    Returns:
+        ``[B, C_out, N]``: what ``head(x[..., None, None])[..., 0, 0]`` gives.
+
+    Example:
+        >>> head = nn.Sequential(nn.Conv3d(8, 4, 1), nn.PReLU(), nn.Conv3d(4, 1, 1))
+        >>> x = torch.randn(2, 8, 10)
+        >>> bool(torch.allclose(pointwise_columns(head, x), head(x[..., None, None])[..., 0, 0], atol=1e-6))
+        True
+    """
+    for layer in head:
+        if isinstance(layer, nn.Conv3d):
+            if tuple(layer.kernel_size) != (1, 1, 1):
+                raise ValueError(f"pointwise_columns needs kernel-1 convolutions, got {tuple(layer.kernel_size)}")
+            x = nn.functional.conv1d(x, layer.weight.flatten(2), layer.bias)
+        else:
+            x = layer(x)
+    return x

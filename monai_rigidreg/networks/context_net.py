@@ -44,7 +44,7 @@ from torch import nn
 from monai_rigidreg.core.geometry import Grid, matrix_to_params_torch
 from monai_rigidreg.core.image_ops import masked_ncc
 from monai_rigidreg.core.warp import warp_volume
-from monai_rigidreg.networks.blocks import ResidualStage3d
+from monai_rigidreg.networks.blocks import ResidualStage3d, pointwise_columns
 from monai_rigidreg.networks.correlation_net import local_cost_volume, unit_channels, weighted_rigid_fit
 
 __all__ = ["COARSE_STARTS", "ContextCorrelationNet", "robust_rigid_fit", "context_from_fixed", "subcell_shifts",
@@ -344,7 +344,7 @@ class ContextCorrelationNet(nn.Module):
             cells = self.cells4[index]  # [B, N, 3]
             pick = index[:, None].expand(b, ff.shape[1], -1)
             both = torch.cat([ff.flatten(2).gather(2, pick), fm.flatten(2).gather(2, pick)], 1)
-            weight = torch.sigmoid(head(both[..., None, None])).flatten(1)
+            weight = torch.sigmoid(pointwise_columns(head, both)).flatten(1)
             valid = torch.ones_like(weight, dtype=torch.bool)
             shifts = self.shifts4
         step = torch.tensor([stride * s for s in self.grid_spacing], dtype=torch.float64, device=warped.device)

@@ -391,3 +391,24 @@ def test_onednn_conv_is_the_torch_convolution_for_one_volume(stride):
         two = torch.randn(2, 6, 11, 9, 10)
         assert torch.equal(ours(two), ref(two))
         assert torch.equal(ours.double()(x.double()), ref.double()(x.double()))
+
+
+def test_pointwise_columns_is_the_volume_head_on_columns():
+    """A kernel-1 head run on ``[B, C, N]`` columns (the 4 mm level's match weights): the output and the gradients
+    (inputs and every weight) are those of the same modules on a ``[B, C, N, 1, 1]`` volume; a channel mix-up (the
+    weights transposed) fails it; a kernel-3 convolution is refused."""
+    from monai_rigidreg.networks.blocks import pointwise_columns
+
+    torch.manual_seed(0)
+    head = torch.nn.Sequential(torch.nn.Conv3d(6, 4, 1), torch.nn.PReLU(), torch.nn.Conv3d(4, 1, 1))
+    x = torch.randn(3, 6, 17, requires_grad=True)
+    out, want = pointwise_columns(head, x), head(x[..., None, None])[..., 0, 0]
+    assert out.shape == (3, 1, 17)
+    torch.testing.assert_close(out, want, atol=1e-6, rtol=1e-6)
+    params = [x, *head.parameters()]
+    for a, b in zip(torch.autograd.grad(out.square().sum(), params), torch.autograd.grad(want.square().sum(), params)):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    mixed = torch.nn.functional.conv1d(x, head[0].weight.flatten(2).flip(1), head[0].bias)
+    assert not torch.allclose(mixed, head[0](x[..., None, None])[..., 0, 0], atol=1e-3)
+    with pytest.raises(ValueError, match="kernel-1"):
+        pointwise_columns(torch.nn.Sequential(torch.nn.Conv3d(6, 1, 3)), x)
