@@ -10,7 +10,7 @@ import torch
 from conftest import oblique_direction, smooth_random_image
 
 from monai_rigidreg.core.geometry import Grid, params_to_matrix, params_to_sitk
-from monai_rigidreg.core.warp import warp_points, warp_volume, warp_volume_many, warp_volume_params
+from monai_rigidreg.core.warp import affine_grid, warp_points, warp_volume, warp_volume_many, warp_volume_params
 from monai_rigidreg.io import metatensor_to_sitk, sitk_to_metatensor
 
 
@@ -85,7 +85,8 @@ def test_warp_rejects_bad_shapes(moving_image):
 @pytest.mark.parametrize("padding_mode", ["zeros", "border", "reflection"])
 def test_warp_is_monai_affine_transform(moving_image, mode, padding_mode):
     """warp_volume samples as MONAI's AffineTransform (normalized theta, align_corners) did before it was called
-    directly: value for value, batch of two different transforms, a different output size."""
+    directly: batch of two different transforms, a different output size; to float rounding, as its sampling points
+    are :func:`affine_grid`'s per-axis sums rather than torch's matrix product (a 1e-3 voxel shift fails it)."""
     from monai.networks.layers import AffineTransform
 
     from monai_rigidreg.core.geometry import normalized_theta
@@ -100,7 +101,13 @@ def test_warp_is_monai_affine_transform(moving_image, mode, padding_mode):
     ref = AffineTransform(normalized=True, mode=mode, padding_mode=padding_mode, align_corners=True,
                           reverse_indexing=False)(vol, theta, spatial_size=FIXED.size)
     assert got.shape == (2, 1, *FIXED.size)
-    assert torch.equal(got, ref)
+    scale = float(vol.abs().max())
+    torch.testing.assert_close(got, ref, atol=2e-6 * scale, rtol=0)
+    shifted = matrix.clone()
+    shifted[:, 0, 3] += 1e-3 * moving_grid.spacing[0]
+    assert not torch.allclose(warp_volume(vol, shifted, FIXED, moving_grid, mode="bilinear"),
+                              AffineTransform(normalized=True, align_corners=True, reverse_indexing=False)(
+                                  vol, theta, spatial_size=FIXED.size), atol=2e-6 * scale, rtol=0)
     with pytest.raises(ValueError, match="mode"):
         warp_volume(vol, matrix, FIXED, moving_grid, mode="bicubic")
 
@@ -148,3 +155,27 @@ def test_warp_points_are_warp_volume_at_those_voxels(device_dtype):
         warp_points(vol, mats, points[:, :2], fixed, moving)
     with pytest.raises(ValueError, match="batch"):
         warp_points(vol[:1], mats, points, fixed, moving)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_affine_grid_is_torch_s(dtype):
+    """:func:`affine_grid` against ``F.affine_grid(align_corners=True)``: every point (a batch of two, an anisotropic
+    size, one-voxel axes at coordinate 0) and the gradient with respect to ``theta``; a transposed axis fails it."""
+    import torch.nn.functional as F
+
+    g = torch.Generator().manual_seed(3)
+    theta = torch.randn(2, 3, 4, generator=g, dtype=dtype)
+    tol = {"atol": 1e-6, "rtol": 1e-6} if dtype == torch.float32 else {"atol": 1e-12, "rtol": 1e-12}
+    for size in ((5, 7, 9), (1, 6, 4), (3, 1, 1)):
+        got, want = affine_grid(theta, size), F.affine_grid(theta, [2, 1, *size], align_corners=True)
+        assert got.shape == want.shape == (2, *size, 3) and got.dtype == dtype
+        torch.testing.assert_close(got, want, **tol)
+    assert not torch.allclose(affine_grid(theta, (7, 5, 9)).transpose(1, 2), F.affine_grid(
+        theta, [2, 1, 5, 7, 9], align_corners=True), atol=1e-3)
+    weight = torch.randn(2, 5, 7, 9, 3, generator=g, dtype=dtype)
+    leaf = theta.clone().requires_grad_()
+    (ours,) = torch.autograd.grad((affine_grid(leaf, (5, 7, 9)) * weight).sum(), leaf)
+    (theirs,) = torch.autograd.grad((F.affine_grid(leaf, [2, 1, 5, 7, 9], align_corners=True) * weight).sum(), leaf)
+    torch.testing.assert_close(ours, theirs, **{k: 100 * v for k, v in tol.items()})
+    with pytest.raises(ValueError, match=r"\[B, 3, 4\]"):
+        affine_grid(theta[:, :2], (5, 7, 9))
