@@ -1,6 +1,7 @@
-# Sourced by scripts/loco_folds.sh, scripts/train_context_model.sh and scripts/train_context_gpu.sh (not run on its
-# own): a run folder's checkpoints are RUN/models/checkpoint_*epoch=N.pt (monai_rigidreg.engine.handlers), the newest
-# the one with the largest N (not the latest file time: a copied or restored file keeps no order).
+# Sourced by scripts/loco_folds.sh, scripts/eval_loco.sh, scripts/train_context_model.sh and
+# scripts/train_context_gpu.sh (not run on its own): a run folder's checkpoints are RUN/models/checkpoint_*epoch=N.pt
+# (monai_rigidreg.engine.handlers), the newest the one with the largest N (not the latest file time: a copied or
+# restored file keeps no order).
 # `newest_epoch RUN` prints that N (0: no checkpoint); `newest_checkpoint RUN` prints its path (nothing: none).
 newest_checkpoint() {
     local f n best=0 path=""

@@ -19,12 +19,13 @@ RUN=${2:-training/loco/$HOLD}
 OUT=${3:-benchmarks/results/loco}
 SHARED=${SHARED:-../shared/data}
 source scripts/loco_split.sh
+source scripts/checkpoints.sh
 loco_split eval_loco "$HOLD"
-ckpt=$(ls "$RUN"/models/checkpoint_*epoch=*.pt 2>/dev/null | sort -t= -k2 -n | tail -1 || true)
+ckpt=$(newest_checkpoint "$RUN")
 if [ -z "$ckpt" ]; then
     echo "eval_loco: no checkpoint in $RUN/models (train the fold first: scripts/train_loco.sh $HOLD)" >&2; exit 2
 fi
-epoch=$(basename "$ckpt" .pt); epoch=${epoch##*=}
+epoch=$(newest_epoch "$RUN")
 bundle="scratch/$(basename "$(dirname "$RUN")")_${HOLD}_e${epoch}"  # scratch/loco_<HOLD>_e<epoch> for training/loco
 day=$(date -u +%F)
 mkdir -p "$OUT"

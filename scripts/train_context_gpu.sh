@@ -7,9 +7,10 @@
 #          scripts/train_context_gpu.sh RUN_DIR [OUT_DIR]
 # The training stops itself at the time limit (SIGTERM: the checkpoint of the last complete epoch stays); OUT_DIR
 # (default RUN_DIR) receives the newest checkpoint, history.json, curves.png and train_log.txt.
-# On the CPU at a tiny size: DEVICE=cpu MINUTES=1 BATCH=2 EPOCH_LENGTH=2 CASES=1. Its own steps (--resume only where
-# RUN_DIR holds a checkpoint, the newest by epoch brought back, the exit status) are tested with a stand-in training
-# script (tests/test_training_cts.py); the training itself is scripts/train_context_model.sh.
+# On the CPU at a tiny size: DEVICE=cpu MINUTES=2 BATCH=2 EPOCH_LENGTH=2 CASES=1 (MINUTES=1 ends before its first
+# epoch). Its own steps (--resume only where RUN_DIR holds a checkpoint, the newest by epoch brought back, the exit
+# status) are tested with a stand-in training script (tests/test_training_cts.py); the training itself is
+# scripts/train_context_model.sh.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/checkpoints.sh

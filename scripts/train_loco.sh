@@ -15,7 +15,8 @@
 # train.json and the link and prints the training command instead of running it. On a GPU (about 10 minutes a call):
 #   DEVICE=cuda BATCH=16 EPOCH_LENGTH=25 SAMPLER_DEVICE=cuda SIM_DEVICE=cuda WORKERS=0 scripts/train_loco.sh HOLD_OUT
 # Then the fold's network alone on its held-out CT (BENCH_TRAINED_ON labels the CTs the fold trained on):
-#   python scripts/export_context_bundle.py "$(ls -t RUN_DIR/models/checkpoint_*.pt | head -1)" OUT --passes 4 1
+#   python scripts/export_context_bundle.py "$(source scripts/checkpoints.sh; newest_checkpoint RUN_DIR)" OUT \
+#       --passes 4 1
 #   BENCH_TRAINED_ON="<the five>" python -m benchmarks.accuracy.bench_real_ct --ct SHARED/HOLD_OUT.nii.gz \
 #       --methods network-regression --num-cases 12 --threads 1 --bundle OUT --results ...
 # Exit status 2 (nothing written) for an unknown HOLD_OUT or a missing CT; the training script's own checks apply
