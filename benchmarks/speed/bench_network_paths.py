@@ -14,6 +14,11 @@ Prints the median seconds of:
   channels, radius 1, batch 1) as a product and channel sum (0.6.3) and as the einsum it replaced;
 * the networks' unit feature vectors (``correlation_net.unit_channels``, a 4 mm level's ``[4, 16, 32^3]`` maps) as a
   sum of squares over the channels (0.6.3) and as ``F.normalize``'s vector norm;
+* the sampling points of every warp (``core.warp.affine_grid``) on the last level's ``102^3`` grid and the network's
+  ``64^3`` as per-axis sums (0.6.3) and as ``F.affine_grid``'s batched product;
+* the 4 mm level's match-weight head with its backward at training size, at 1 thread and at torch's count
+  (``networks.blocks.pointwise_columns``) as ``conv1d`` on the selected cells' columns (0.6.3) and as a kernel-1
+  ``Conv3d`` on a ``[B, C, N, 1, 1]`` volume;
 * the Gauss-Newton Jacobian on the last level's grid (about 1M voxels, two feature channels): from index ramps
   (``fixed_jacobian``) and through the ``[6, 3, N]`` parameter flow it replaced;
 * the masked NCC maps of the global search's 27 rotation templates: one batched FFT (``masked_ncc_maps``) and one
@@ -192,6 +197,28 @@ def main() -> None:
     rows.append(("unit channel vectors [4, 16, 32^3]: sum of squares | F.normalize",
                  median_time(lambda: unit_channels(maps), args.repeats),
                  median_time(lambda: torch.nn.functional.normalize(maps, dim=1), args.repeats)))
+
+    from monai_rigidreg.core.warp import affine_grid
+    from monai_rigidreg.networks.blocks import pointwise_columns
+
+    theta = torch.randn(1, 3, 4, generator=torch.Generator().manual_seed(9))
+    for n in (102, 64):  # the last level's grid, the network's grid
+        rows.append((f"sampling points, {n}^3: per-axis sums | F.affine_grid",
+                     median_time(lambda n=n: affine_grid(theta, (n, n, n)), args.repeats),
+                     median_time(lambda n=n: torch.nn.functional.affine_grid(theta, [1, 1, n, n, n],
+                                                                             align_corners=True), args.repeats)))
+
+    head = torch.nn.Sequential(torch.nn.Conv3d(32, 16, 1), torch.nn.PReLU(), torch.nn.Conv3d(16, 1, 1))
+    torch.nn.init.normal_(head[-1].weight)
+    columns = torch.randn(4, 32, 4096, generator=torch.Generator().manual_seed(10), requires_grad=True)
+    threads = torch.get_num_threads()
+    for n in sorted({1, threads}):  # a CPU training run beside other work runs at 1 thread (engine.ThreadTuner)
+        torch.set_num_threads(n)
+        rows.append((f"4 mm weight head + backward [4, 32, 4096] (training), {n} thread(s): conv1d columns | "
+                     "Conv3d [.., 1, 1]",
+                     median_time(lambda: pointwise_columns(head, columns).sum().backward(), args.repeats),
+                     median_time(lambda: head(columns[..., None, None]).sum().backward(), args.repeats)))
+    torch.set_num_threads(threads)
 
     ramps = median_time(lambda: fixed_jacobian(feats, native), args.repeats)
     flows = median_time(through_flow, args.repeats)

@@ -84,9 +84,9 @@ def affine_grid(theta: torch.Tensor, size: tuple[int, int, int]) -> torch.Tensor
     """``F.affine_grid(theta, [B, C, *size], align_corners=True)`` as a sum of three per-axis terms.
 
     Torch forms every point as ``[x, y, z, 1] @ theta^T``, a batched matrix product with an inner size of 4 that
-    runs on a slow path on the CPU: 111 ms for a ``102^3`` grid where the per-axis sum takes 14 ms, 17 -> 1.2 ms at
-    ``64^3`` (2 cores, torch 2.13; about 0.15 s of a registration). The same points to float rounding and the same
-    gradients with respect to ``theta`` (``tests/core/test_warp.py``).
+    runs on a slow path on the CPU: 21.5 ms for a ``102^3`` grid where the per-axis sum takes 4.1 ms, 6.0 -> 1.2 ms
+    at ``64^3`` (2 cores, torch 2.13, ``benchmarks/speed/bench_network_paths.py``). The same points to float rounding
+    and the same gradients with respect to ``theta`` (``tests/core/test_warp.py``).
 
     Args:
         theta: ``[B, 3, 4]`` normalized affine matrices (:func:`~monai_rigidreg.core.geometry.normalized_theta`).

@@ -112,8 +112,9 @@ def pointwise_columns(head: nn.Sequential, x: torch.Tensor) -> torch.Tensor:
     """``head`` (kernel-1 ``nn.Conv3d`` layers between elementwise ones, e.g. a match-weight head) on columns.
 
     Each kernel-1 ``Conv3d`` runs as ``conv1d`` with its own weights, so the module and its ``state_dict`` stay those
-    of a volume head. Why: the same ``Conv3d`` on the columns viewed as a ``[B, C, N, 1, 1]`` volume took a slow
-    path, 102 ms forward and backward at ``[4, 32, 4096]`` on one core against 4.9 ms as ``conv1d`` (torch 2.13).
+    of a volume head. Why: the same ``Conv3d`` on the columns viewed as a ``[B, C, N, 1, 1]`` volume takes a slow
+    backward at one thread, 143 ms forward and backward at ``[4, 32, 4096]`` against 5.8 ms as ``conv1d`` (7.0 ms
+    either way at 2 threads; torch 2.13, ``benchmarks/speed/bench_network_paths.py``).
 
     Args:
         head: the layers, applied in order; every ``nn.Conv3d`` among them has kernel size 1.
