@@ -17,6 +17,7 @@ MODULES = [
     "monai_rigidreg.registration.registrar",
     "monai_rigidreg.export.transform_files",
     "monai_rigidreg.simulation.toy",
+    "monai_rigidreg.networks.blocks",
     "monai_rigidreg.networks.context_net",
     "monai_rigidreg.losses.match_loss",
     "monai_rigidreg.engine.sampler",

@@ -19,6 +19,9 @@ Prints the median seconds of:
 * the 4 mm level's match-weight head with its backward at training size, at 1 thread and at torch's count
   (``networks.blocks.pointwise_columns``) as ``conv1d`` on the selected cells' columns (0.6.3) and as a kernel-1
   ``Conv3d`` on a ``[B, C, N, 1, 1]`` volume;
+* a kernel-3 convolution of the context network's training size with its backward, at 1 thread and at torch's
+  count: ``OneDNNConv3d``'s weight gradient as one swapped convolution (0.6.3) and ``nn.Conv3d``'s (oneDNN's
+  weight-gradient kernel);
 * the Gauss-Newton Jacobian on the last level's grid (about 1M voxels, two feature channels): from index ramps
   (``fixed_jacobian``) and through the ``[6, 3, N]`` parameter flow it replaced;
 * the masked NCC maps of the global search's 27 rotation templates: one batched FFT (``masked_ncc_maps``) and one
@@ -218,6 +221,20 @@ def main() -> None:
                      "Conv3d [.., 1, 1]",
                      median_time(lambda: pointwise_columns(head, columns).sum().backward(), args.repeats),
                      median_time(lambda: head(columns[..., None, None]).sum().backward(), args.repeats)))
+    torch.set_num_threads(threads)
+
+    from monai_rigidreg.networks.blocks import OneDNNConv3d
+
+    volume16 = torch.randn(4, 16, 32, 32, 32, generator=torch.Generator().manual_seed(11), requires_grad=True)
+    plain_conv = torch.nn.Conv3d(16, 16, 3, 1, 1)
+    swapped_conv = OneDNNConv3d(16, 16, 3, 1, 1)
+    swapped_conv.load_state_dict(plain_conv.state_dict())
+    for n in sorted({1, threads}):
+        torch.set_num_threads(n)
+        rows.append((f"kernel-3 conv + backward [4, 16, 32^3] 16 -> 16 (training), {n} thread(s): swapped-convolution "
+                     "weight gradient | oneDNN's",
+                     median_time(lambda: swapped_conv(volume16).sum().backward(), args.repeats),
+                     median_time(lambda: plain_conv(volume16).sum().backward(), args.repeats)))
     torch.set_num_threads(threads)
 
     ramps = median_time(lambda: fixed_jacobian(feats, native), args.repeats)

@@ -38,24 +38,82 @@ def _norm(norm: str | tuple, channels: int) -> nn.Module:
     raise ValueError(f"norm must be one of {NORMS} (or a (name, kwargs) pair), got {norm!r}")
 
 
-class OneDNNConv3d(nn.Conv3d):
-    """``nn.Conv3d`` that sends a single CPU volume (batch 1, float32, kernel larger than 1) to oneDNN directly.
+def _onednn_ready(input: torch.Tensor, weight: torch.Tensor) -> bool:
+    """A float32 CPU convolution that oneDNN can take directly (``torch.mkldnn_convolution``)."""
+    return (input.device.type == "cpu" and input.dtype == torch.float32 and weight.dtype == torch.float32
+            and torch.backends.mkldnn.is_available() and torch.backends.mkldnn.enabled)
 
-    PyTorch 2.x runs such a convolution on its slow reference path instead of oneDNN (MKL-DNN): on 2 cores a
-    kernel-3 convolution of ``[1, 16, 32, 32, 32]`` took 24 ms instead of 1.8 ms through ``torch.mkldnn_convolution``
-    (``benchmarks/speed/bench_network_paths.py``, torch 2.13; a batch of 2 already goes to oneDNN). The registration
-    runs the network on one volume at a time, and the regression's fine passes re-encode the warped CBCT alone, so this
-    was a quarter of a network run (one run 0.24 s instead of 0.32 s, the same script).
-    Same weights, same ``state_dict``; the result agrees with ``nn.Conv3d``'s to float
-    rounding (``tests/test_correlation_net.py``), and gradients flow through oneDNN's backward as well. Elsewhere
-    (CUDA, batches, kernel 1, float64, oneDNN disabled) it is ``nn.Conv3d``.
+
+class _SwappedWeightGradConv3d(torch.autograd.Function):
+    """``F.conv3d`` (groups 1, dilation 1, zero padding) whose weight gradient is itself one convolution.
+
+    ``dW[o, i, k] = sum_b sum_x g[b, o, x] * x_pad[b, i, stride * x + k]`` is the convolution of the padded input
+    with the batch as its channels and its channels as its batch (``[C_in, B, ...]``) by the output gradient taken
+    as ``C_out`` filters of ``B`` channels, dilated by the stride, cut to the kernel's size. On CPU oneDNN runs this
+    forward convolution faster than its own weight-gradient kernel: at a training step's ``[4, 16, 32^3]`` 16 -> 16
+    kernel-3 convolution 1.6x at 1 thread, and beside another busy process far more at 2 threads
+    (``benchmarks/speed/bench_network_paths.py``). The input gradient is PyTorch's own
+    (``aten.convolution_backward``), the bias gradient the output gradient's sum.
+    """
+
+    @staticmethod
+    def forward(ctx, input, weight, bias, stride, padding):  # noqa: ANN001, ANN205 (autograd.Function)
+        ctx.save_for_backward(input, weight)
+        ctx.stride, ctx.padding, ctx.has_bias = stride, padding, bias is not None
+        if input.shape[0] == 1 and _onednn_ready(input, weight):  # as OneDNNConv3d's forward
+            return torch.mkldnn_convolution(input.contiguous(), weight, bias, padding, stride, (1, 1, 1), 1)
+        return nn.functional.conv3d(input, weight, bias, stride, padding)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):  # noqa: ANN001, ANN205
+        input, weight = ctx.saved_tensors
+        grad_input = grad_weight = grad_bias = None
+        if ctx.needs_input_grad[0]:
+            grad_input = torch.ops.aten.convolution_backward(
+                grad, input, weight, None, list(ctx.stride), list(ctx.padding), [1, 1, 1], False, [0, 0, 0], 1,
+                [True, False, False])[0]
+        if ctx.needs_input_grad[1]:
+            px, py, pz = ctx.padding
+            padded = nn.functional.pad(input, (pz, pz, py, py, px, px)) if px or py or pz else input
+            full = nn.functional.conv3d(padded.transpose(0, 1), grad.transpose(0, 1), dilation=ctx.stride)
+            kx, ky, kz = weight.shape[2:]
+            grad_weight = full[:, :, :kx, :ky, :kz].transpose(0, 1)
+        if ctx.has_bias and ctx.needs_input_grad[2]:
+            grad_bias = grad.sum((0, 2, 3, 4))
+        return grad_input, grad_weight, grad_bias, None, None
+
+
+class OneDNNConv3d(nn.Conv3d):
+    """``nn.Conv3d`` with two CPU paths of its own: a single volume sent to oneDNN directly, and a weight gradient
+    computed as a convolution.
+
+    * PyTorch 2.x runs a convolution of a single CPU volume (batch 1, float32, kernel larger than 1) on its slow
+      reference path instead of oneDNN (MKL-DNN): on 2 cores a kernel-3 convolution of ``[1, 16, 32, 32, 32]`` took
+      24 ms instead of 1.8 ms through ``torch.mkldnn_convolution`` (``benchmarks/speed/bench_network_paths.py``,
+      torch 2.13; a batch of 2 already goes to oneDNN). The registration runs the network on one volume at a time,
+      and the regression's fine passes re-encode the warped CBCT alone, so this was a quarter of a network run (one
+      run 0.24 s instead of 0.32 s, the same script).
+    * Where the weight needs a gradient (training) on CPU, the weight gradient is one forward convolution
+      (:class:`_SwappedWeightGradConv3d`) instead of oneDNN's weight-gradient kernel, which was the largest item of
+      a context-network training step.
+
+    Same weights, same ``state_dict``; the result and the gradients agree with ``nn.Conv3d``'s to float rounding
+    (``tests/networks/test_correlation_net.py``). Elsewhere it is ``nn.Conv3d``: on CUDA, for kernel 1, dilation or
+    groups, and without a weight gradient for batches, float64 or oneDNN disabled.
+
+    Example:
+        >>> conv = OneDNNConv3d(2, 4, 3, 2, 1)
+        >>> conv(torch.randn(3, 2, 9, 8, 8)).shape
+        torch.Size([3, 4, 5, 4, 4])
     """
 
     def _conv_forward(self, input: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
-        if (input.shape[0] == 1 and input.device.type == "cpu" and input.dtype == torch.float32
-                and weight.dtype == torch.float32 and self.padding_mode == "zeros"
-                and not isinstance(self.padding, str) and max(self.kernel_size) > 1
-                and torch.backends.mkldnn.is_available() and torch.backends.mkldnn.enabled):
+        direct = self.padding_mode == "zeros" and not isinstance(self.padding, str) and max(self.kernel_size) > 1
+        if (direct and self.groups == 1 and tuple(self.dilation) == (1, 1, 1) and input.device.type == "cpu"
+                and weight.requires_grad and torch.is_grad_enabled()):
+            return _SwappedWeightGradConv3d.apply(input, weight, bias, tuple(self.stride), tuple(self.padding))
+        if direct and input.shape[0] == 1 and _onednn_ready(input, weight):
             return torch.mkldnn_convolution(input.contiguous(), weight, bias, self.padding, self.stride,
                                             self.dilation, self.groups)
         return super()._conv_forward(input, weight, bias)

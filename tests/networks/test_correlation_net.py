@@ -393,6 +393,60 @@ def test_onednn_conv_is_the_torch_convolution_for_one_volume(stride):
         assert torch.equal(ours.double()(x.double()), ref.double()(x.double()))
 
 
+@pytest.mark.parametrize("case", [
+    # batch, channels in / out, size, kernel, stride, padding
+    (3, 4, 5, (9, 8, 7), 3, 1, 1),
+    (2, 3, 4, (11, 9, 10), 3, 2, 1),
+    (2, 2, 3, (12, 7, 9), (3, 1, 5), (2, 1, 3), (1, 0, 2)),
+    (1, 1, 6, (10, 10, 10), 3, 2, 1),  # one volume, one input channel (the encoders' first convolution)
+])
+def test_onednn_conv_weight_gradient_by_a_swapped_convolution_is_autograds(case):
+    """Training on CPU (the weight needs a gradient): OneDNNConv3d takes the swapped-convolution weight gradient
+    (_SwappedWeightGradConv3d). In float64 its output and the input, weight and bias gradients equal nn.Conv3d's to
+    1e-10 for odd sizes, anisotropic kernels, strides and paddings; with the weight frozen, or under no_grad, it does
+    not take that path."""
+    from monai_rigidreg.networks.blocks import OneDNNConv3d
+
+    batch, c_in, c_out, size, kernel, stride, padding = case
+    torch.manual_seed(0)
+    ref = torch.nn.Conv3d(c_in, c_out, kernel, stride, padding).double()
+    ours = OneDNNConv3d(c_in, c_out, kernel, stride, padding).double()
+    ours.load_state_dict(ref.state_dict())
+    x = torch.randn(batch, c_in, *size, dtype=torch.float64, generator=torch.Generator().manual_seed(3),
+                    requires_grad=True)
+    out, want = ours(x), ref(x)
+    assert "SwappedWeightGrad" in type(out.grad_fn).__name__
+    torch.testing.assert_close(out, want, atol=1e-12, rtol=1e-12)
+    weights = torch.randn(want.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    got = torch.autograd.grad((out * weights).sum(), [x, ours.weight, ours.bias])
+    expected = torch.autograd.grad((want * weights).sum(), [x, ref.weight, ref.bias])
+    for a, b in zip(got, expected):
+        assert a.shape == b.shape
+        torch.testing.assert_close(a, b, atol=1e-10, rtol=1e-10)
+    ours.weight.requires_grad_(False)
+    assert "SwappedWeightGrad" not in type(ours(x).grad_fn).__name__
+    ours.weight.requires_grad_(True)
+    with torch.no_grad():
+        assert ours(x).grad_fn is None
+
+
+def test_onednn_conv_weight_gradient_at_training_size_in_float32():
+    """The context network's largest training convolution, ``[4, 16, 32^3]`` 16 -> 16 kernel 3 (here 20^3): the
+    float32 weight gradient of the swapped convolution is nn.Conv3d's to float rounding; one transposed in its two
+    channel axes (a mix-up of input and output channels) is not."""
+    from monai_rigidreg.networks.blocks import OneDNNConv3d
+
+    torch.manual_seed(0)
+    ref = torch.nn.Conv3d(16, 16, 3, 1, 1)
+    ours = OneDNNConv3d(16, 16, 3, 1, 1)
+    ours.load_state_dict(ref.state_dict())
+    x = torch.randn(4, 16, 20, 20, 20, generator=torch.Generator().manual_seed(5))
+    g_ours = torch.autograd.grad(ours(x).square().sum(), ours.weight)[0]
+    g_ref = torch.autograd.grad(ref(x).square().sum(), ref.weight)[0]
+    torch.testing.assert_close(g_ours, g_ref, atol=1e-3, rtol=1e-4)
+    assert not torch.allclose(g_ours.transpose(0, 1), g_ref, atol=1e-3, rtol=1e-4)
+
+
 def test_pointwise_columns_is_the_volume_head_on_columns():
     """A kernel-1 head run on ``[B, C, N]`` columns (the 4 mm level's match weights): the output and the gradients
     (inputs and every weight) are those of the same modules on a ``[B, C, N, 1, 1]`` volume; a channel mix-up (the
