@@ -202,7 +202,7 @@ def main() -> None:
                  median_time(lambda: torch.nn.functional.normalize(maps, dim=1), args.repeats)))
 
     from monai_rigidreg.core.warp import affine_grid
-    from monai_rigidreg.networks.blocks import pointwise_columns
+    from monai_rigidreg.networks.blocks import OneDNNConv3d, pointwise_columns
 
     theta = torch.randn(1, 3, 4, generator=torch.Generator().manual_seed(9))
     for n in (102, 64):  # the last level's grid, the network's grid
@@ -214,6 +214,10 @@ def main() -> None:
     head = torch.nn.Sequential(torch.nn.Conv3d(32, 16, 1), torch.nn.PReLU(), torch.nn.Conv3d(16, 1, 1))
     torch.nn.init.normal_(head[-1].weight)
     columns = torch.randn(4, 32, 4096, generator=torch.Generator().manual_seed(10), requires_grad=True)
+    volume16 = torch.randn(4, 16, 32, 32, 32, generator=torch.Generator().manual_seed(11), requires_grad=True)
+    plain_conv = torch.nn.Conv3d(16, 16, 3, 1, 1)
+    swapped_conv = OneDNNConv3d(16, 16, 3, 1, 1)
+    swapped_conv.load_state_dict(plain_conv.state_dict())
     threads = torch.get_num_threads()
     for n in sorted({1, threads}):  # a CPU training run beside other work runs at 1 thread (engine.ThreadTuner)
         torch.set_num_threads(n)
@@ -221,16 +225,6 @@ def main() -> None:
                      "Conv3d [.., 1, 1]",
                      median_time(lambda: pointwise_columns(head, columns).sum().backward(), args.repeats),
                      median_time(lambda: head(columns[..., None, None]).sum().backward(), args.repeats)))
-    torch.set_num_threads(threads)
-
-    from monai_rigidreg.networks.blocks import OneDNNConv3d
-
-    volume16 = torch.randn(4, 16, 32, 32, 32, generator=torch.Generator().manual_seed(11), requires_grad=True)
-    plain_conv = torch.nn.Conv3d(16, 16, 3, 1, 1)
-    swapped_conv = OneDNNConv3d(16, 16, 3, 1, 1)
-    swapped_conv.load_state_dict(plain_conv.state_dict())
-    for n in sorted({1, threads}):
-        torch.set_num_threads(n)
         rows.append((f"kernel-3 conv + backward [4, 16, 32^3] 16 -> 16 (training), {n} thread(s): swapped-convolution "
                      "weight gradient | oneDNN's",
                      median_time(lambda: swapped_conv(volume16).sum().backward(), args.repeats),

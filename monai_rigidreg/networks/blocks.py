@@ -38,10 +38,15 @@ def _norm(norm: str | tuple, channels: int) -> nn.Module:
     raise ValueError(f"norm must be one of {NORMS} (or a (name, kwargs) pair), got {norm!r}")
 
 
-def _onednn_ready(input: torch.Tensor, weight: torch.Tensor) -> bool:
-    """A float32 CPU convolution that oneDNN can take directly (``torch.mkldnn_convolution``)."""
-    return (input.device.type == "cpu" and input.dtype == torch.float32 and weight.dtype == torch.float32
-            and torch.backends.mkldnn.is_available() and torch.backends.mkldnn.enabled)
+def _conv3d(input: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None, stride: tuple[int, ...],
+            padding: tuple[int, ...], dilation: tuple[int, ...] = (1, 1, 1), groups: int = 1) -> torch.Tensor:
+    """``F.conv3d`` (zero padding), a single float32 CPU volume sent to oneDNN directly (``torch.mkldnn_convolution``;
+    :class:`OneDNNConv3d` says why)."""
+    if (input.shape[0] == 1 and input.device.type == "cpu" and input.dtype == torch.float32
+            and weight.dtype == torch.float32 and torch.backends.mkldnn.is_available()
+            and torch.backends.mkldnn.enabled):
+        return torch.mkldnn_convolution(input.contiguous(), weight, bias, padding, stride, dilation, groups)
+    return nn.functional.conv3d(input, weight, bias, stride, padding, dilation, groups)
 
 
 class _SwappedWeightGradConv3d(torch.autograd.Function):
@@ -50,9 +55,10 @@ class _SwappedWeightGradConv3d(torch.autograd.Function):
     ``dW[o, i, k] = sum_b sum_x g[b, o, x] * x_pad[b, i, stride * x + k]`` is the convolution of the padded input
     with the batch as its channels and its channels as its batch (``[C_in, B, ...]``) by the output gradient taken
     as ``C_out`` filters of ``B`` channels, dilated by the stride, cut to the kernel's size. On CPU oneDNN runs this
-    forward convolution faster than its own weight-gradient kernel: at a training step's ``[4, 16, 32^3]`` 16 -> 16
-    kernel-3 convolution 1.6x at 1 thread, and beside another busy process far more at 2 threads
-    (``benchmarks/speed/bench_network_paths.py``). The input gradient is PyTorch's own
+    forward convolution faster than its own weight-gradient kernel: a training step's ``[4, 16, 32^3]`` 16 -> 16
+    kernel-3 convolution with its backward 1.56x faster at 1 thread, 1.83x at 2
+    (``benchmarks/speed/bench_network_paths.py``); a whole context-network step beside a busy process at 2 threads
+    3.83 -> 2.12 s (``benchmarks/speed/bench_training_threads.py``). The input gradient is PyTorch's own
     (``aten.convolution_backward``), the bias gradient the output gradient's sum.
     """
 
@@ -60,9 +66,7 @@ class _SwappedWeightGradConv3d(torch.autograd.Function):
     def forward(ctx, input, weight, bias, stride, padding):  # noqa: ANN001, ANN205 (autograd.Function)
         ctx.save_for_backward(input, weight)
         ctx.stride, ctx.padding, ctx.has_bias = stride, padding, bias is not None
-        if input.shape[0] == 1 and _onednn_ready(input, weight):  # as OneDNNConv3d's forward
-            return torch.mkldnn_convolution(input.contiguous(), weight, bias, padding, stride, (1, 1, 1), 1)
-        return nn.functional.conv3d(input, weight, bias, stride, padding)
+        return _conv3d(input, weight, bias, stride, padding)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -109,14 +113,13 @@ class OneDNNConv3d(nn.Conv3d):
     """
 
     def _conv_forward(self, input: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
-        direct = self.padding_mode == "zeros" and not isinstance(self.padding, str) and max(self.kernel_size) > 1
-        if (direct and self.groups == 1 and tuple(self.dilation) == (1, 1, 1) and input.device.type == "cpu"
+        if self.padding_mode != "zeros" or isinstance(self.padding, str) or max(self.kernel_size) == 1:
+            return super()._conv_forward(input, weight, bias)
+        if (self.groups == 1 and tuple(self.dilation) == (1, 1, 1) and input.device.type == "cpu"
                 and weight.requires_grad and torch.is_grad_enabled()):
             return _SwappedWeightGradConv3d.apply(input, weight, bias, tuple(self.stride), tuple(self.padding))
-        if direct and input.shape[0] == 1 and _onednn_ready(input, weight):
-            return torch.mkldnn_convolution(input.contiguous(), weight, bias, self.padding, self.stride,
-                                            self.dilation, self.groups)
-        return super()._conv_forward(input, weight, bias)
+        return _conv3d(input, weight, bias, tuple(self.stride), tuple(self.padding), tuple(self.dilation),
+                       self.groups)
 
 
 class _ConvNormAct(nn.Sequential):
