@@ -21,6 +21,7 @@ MODULES = [
     "monai_rigidreg.networks.context_net",
     "monai_rigidreg.losses.match_loss",
     "monai_rigidreg.engine.sampler",
+    "benchmarks.accuracy.bench_generalisation_gap",
 ]
 
 
