@@ -3,7 +3,8 @@
 # bundles/cbct_ct_rigid/docs/README.md, "Training the next weights").
 #   usage: [DATA=data] [SHARED=../shared/data] [DEVICE=cpu|cuda] [BATCH=4] [EPOCH_LENGTH=100] [WORKERS=1] \
 #          [SAMPLER_DEVICE=cpu|cuda] [CASES=12] [SIM_DEVICE=cpu|cuda] [INIT=weights.pt [INIT_PARTIAL=1]] \
-#          [ANATOMY_PROB=0..1] scripts/train_context_model.sh [RUN_DIR] [EPOCHS] [--resume]
+#          [ANATOMY_PROB=0..1] [ORIENTATION_PROB=0..1 [ORIENTATION_MAX=deg]] \
+#          scripts/train_context_model.sh [RUN_DIR] [EPOCHS] [--resume]
 # First call: simulates the training data when it is missing (scripts/make_training_data.sh, about 8 minutes on
 # 2 cores; scripts/make_clinical_training_data.py, about 10 minutes), then trains from scratch. Resumed (3rd argument
 # --resume): continues from the newest checkpoint in RUN_DIR/models (epoch, optimizer, learning-rate schedule,
@@ -17,6 +18,9 @@
 # CHANGE_ANATOMY=1 with --resume and ANATOMY_PROB: the run goes on from its checkpoint with this value instead
 # (optimizer, schedule, samples seen kept); RUN_DIR/anatomy_prob_history gets a line "epoch N: OLD -> NEW" (N: the
 # first epoch trained with NEW), so the run's docs can say which samples saw which data.
+# ORIENTATION_PROB, ORIENTATION_MAX: the share of samples whose anatomy is turned about the isocentre in both images
+# and the largest angle per axis (RigidPairSampler's orientation_prob, orientation_max; default 0 and 15 degrees); a
+# run's values are kept in RUN_DIR/orientation ("PROB MAX") and reused on --resume (other values: exit status 2).
 # One epoch = 100 iterations of batch 4 = 400 samples; 750 epochs = 300 000 samples.
 # Held out of training (never read here): thorax_4dct_phase00_itkelastix, head_tigre_ct (and the stock Shepp-Logan
 # phantom, the validation set), unless TRAIN_CT_NAMES names them (a leave-one-CT-out fold: scripts/train_loco.sh).
@@ -108,6 +112,25 @@ elif [ -f "$RUN/anatomy_prob" ]; then
     fi
     ANATOMY_PROB=$kept
 fi
+kept_orientation=""  # "PROB MAX" of the run in RUN (none: a run without the option, 0 15)
+[ -f "$RUN/orientation" ] && kept_orientation=$(cat "$RUN/orientation")
+orientation=$kept_orientation
+if [ -n "${ORIENTATION_PROB:-}" ] || [ -n "${ORIENTATION_MAX:-}" ]; then
+    o_prob=${ORIENTATION_PROB:-0}; o_max=${ORIENTATION_MAX:-15}
+    [[ "$o_prob" =~ ^[0-9]*\.?[0-9]+$ ]] && [[ "$o_max" =~ ^[0-9]*\.?[0-9]+$ ]] \
+        && awk -v p="$o_prob" -v m="$o_max" 'BEGIN { exit !(p + 0 <= 1 && m + 0 <= 180) }' || {
+        echo "train_context_model: ORIENTATION_PROB must be in [0, 1] and ORIENTATION_MAX in [0, 180] degrees," \
+             "got '$o_prob' and '$o_max'" >&2; exit 2; }
+    read -r k_prob k_max <<< "${kept_orientation:-0 15}"
+    if { [ -n "$kept_orientation" ] || [ -n "$RESUME" ]; } \
+            && ! { same_number "$k_prob" "$o_prob" && same_number "$k_max" "$o_max"; }; then
+        echo "train_context_model: $RUN was trained with ORIENTATION_PROB ORIENTATION_MAX '$k_prob $k_max', not" \
+             "'$o_prob $o_max': nothing was changed" >&2
+        exit 2
+    fi
+    orientation="$o_prob $o_max"
+fi
+[ -n "$orientation" ] && read -r o_prob o_max <<< "$orientation"
 export OMP_WAIT_POLICY=PASSIVE
 if [ ! -f "$DATA/train.json" ]; then
     scripts/make_training_data.sh "$DATA" "$SHARED"
@@ -127,6 +150,9 @@ if [ -n "$change_from" ]; then
 elif [ -n "${ANATOMY_PROB:-}" ] && [ ! -f "$RUN/anatomy_prob" ]; then
     echo "$ANATOMY_PROB" > "$RUN/anatomy_prob"
 fi
+if [ -n "${orientation:-}" ] && [ ! -f "$RUN/orientation" ]; then
+    echo "$orientation" > "$RUN/orientation"
+fi
 python -m monai.bundle run \
     --config_file "['bundles/cbct_ct_rigid/configs/train.json','bundles/cbct_ct_rigid/configs/train_context.json']" \
     --bundle_root bundles/cbct_ct_rigid --output_dir "$RUN" --ckpt_dir "$RUN/models" \
@@ -136,5 +162,6 @@ python -m monai.bundle run \
     --epoch_length "$EPOCH_LENGTH" --num_workers "$WORKERS" --train#dataset#device "$SAMPLER_DEVICE" \
     --resume "$([ -n "$RESUME" ] && echo True || echo False)" \
     ${ANATOMY_PROB:+--train#dataset#anatomy_prob "$ANATOMY_PROB"} \
+    ${orientation:+--train#dataset#orientation_prob "$o_prob" --train#dataset#orientation_max "$o_max"} \
     ${INIT:+--init_weights "$(realpath "$INIT")" --init_partial "$([ "$INIT_PARTIAL" = 1 ] && echo True || echo False)"} \
     2>&1 | tee -a "$RUN/train_log.txt"

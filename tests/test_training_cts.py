@@ -210,6 +210,60 @@ def test_the_training_script_keeps_a_run_s_anatomy_stretch(tmp_path):
     assert same.returncode == 0, same.stderr  # the same number written otherwise
 
 
+def test_the_training_script_keeps_a_run_s_orientation_and_passes_it_to_the_sampler(tmp_path):
+    """``ORIENTATION_PROB`` / ``ORIENTATION_MAX``: a new run records them in its folder (``orientation``, "PROB MAX")
+    and hands both to the sampler (``--train#dataset#orientation_prob`` / ``_max``, read from a stand-in for
+    ``python``); a resumed run takes them from the folder; another value, a bad value, or a value for a resumed run
+    trained without them is refused with exit status 2 and the folder left as it was."""
+    import subprocess
+
+    data, shared = _fake_data(tmp_path)
+    (data / "clinical").mkdir()
+    (data / "clinical" / "dataset.json").write_text("{}")
+    shim = tmp_path / "bin"
+    shim.mkdir()
+    (shim / "python").write_text('#!/usr/bin/env bash\nprintf "%s\\n" "$@" > "$ARGS_FILE"\n')
+    (shim / "python").chmod(0o755)
+    args_file = tmp_path / "args.txt"
+    base = {**os.environ, "TRAIN_CT_NAMES": " ".join(TRAINING_CTS), "SHARED": str(shared), "DATA": str(data),
+            "PATH": f"{shim}:{os.environ['PATH']}", "ARGS_FILE": str(args_file)}
+    script = str(REPO / "scripts" / "train_context_model.sh")
+
+    def run(run_dir, *args, **env):
+        args_file.unlink(missing_ok=True)
+        return subprocess.run(["bash", script, str(run_dir), "1", *args], env={**base, **env}, capture_output=True,
+                              text=True, timeout=60)
+
+    def sampler_args():
+        words = args_file.read_text().split("\n")
+        return {k: words[words.index(k) + 1] for k in ("--train#dataset#orientation_prob",
+                                                        "--train#dataset#orientation_max") if k in words}
+
+    new = run(tmp_path / "new", ORIENTATION_PROB="0.5", ORIENTATION_MAX="20")
+    assert new.returncode == 0, new.stderr
+    assert (tmp_path / "new" / "orientation").read_text() == "0.5 20\n"
+    assert sampler_args() == {"--train#dataset#orientation_prob": "0.5", "--train#dataset#orientation_max": "20"}
+    resumed = run(tmp_path / "new", "--resume")  # the stand-in wrote no checkpoint: the check stops it first
+    assert resumed.returncode == 2 and "no checkpoint" in resumed.stderr
+    plain = run(tmp_path / "plain")
+    assert plain.returncode == 0 and sampler_args() == {} and not (tmp_path / "plain" / "orientation").exists()
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "orientation").write_text("0.5 20\n")
+    before = listing(kept)
+    other = run(kept, ORIENTATION_PROB="0.3", ORIENTATION_MAX="20", PREPARE_DATA_ONLY="1")
+    assert other.returncode == 2 and "'0.5 20', not '0.3 20'" in other.stderr and listing(kept) == before
+    bad = run(tmp_path / "bad", ORIENTATION_PROB="1.5")
+    assert bad.returncode == 2 and "ORIENTATION_PROB must be in [0, 1]" in bad.stderr
+    assert not (tmp_path / "bad").exists()
+    same = run(kept, ORIENTATION_PROB="0.50", ORIENTATION_MAX="20.0")
+    assert same.returncode == 0, same.stderr
+    assert sampler_args()["--train#dataset#orientation_prob"] == "0.50"
+    from_folder = run(kept)  # nothing asked: the folder's values
+    assert from_folder.returncode == 0 and sampler_args() == {"--train#dataset#orientation_prob": "0.5",
+                                                              "--train#dataset#orientation_max": "20"}
+
+
 def test_a_resumed_run_changes_its_anatomy_stretch_only_when_asked(tmp_path):
     """A run trained without the stretch, resumed with ``ANATOMY_PROB=0.5``: refused (exit status 2, the way named,
     the folder as it was) unless ``CHANGE_ANATOMY=1``, which passes the checks; ``CHANGE_ANATOMY=1`` without

@@ -265,6 +265,10 @@ class RigidPairSampler(IterableDataset):
             the range of the factor drawn per axis (L-R, A-P, S-I); the CT and the CBCT both show the stretched body
             (for ``cbct`` sources the CBCT is stretched about the isocentre's image under ``T0``), the truth is
             unchanged. ``0`` (the default) draws nothing from the stream for it.
+        orientation_prob, orientation_max: probability that a sample's anatomy is the CT turned about the isocentre
+            (after any stretch), and the largest angle per axis (degrees, uniform): the patient lying turned in both
+            scanners, so both images show the turned body, the truth (the setup error between them) unchanged.
+            ``0`` (the default) draws nothing from the stream for it.
         hu_range: HU window mapped to [0, 1].
         seed: the stream's seed (each DataLoader worker draws its own stream from it).
         device: where samples are computed.
@@ -291,6 +295,8 @@ class RigidPairSampler(IterableDataset):
         cbct_degradation: Mapping[str, Any] | None = None,
         anatomy_prob: float = 0.0,
         anatomy_scale: Sequence[float] = (0.85, 1.15),
+        orientation_prob: float = 0.0,
+        orientation_max: float = 15.0,
         hu_range: Sequence[float] = (-1000.0, 2000.0),
         seed: int = 0,
         device: str | torch.device = "cpu",
@@ -332,6 +338,11 @@ class RigidPairSampler(IterableDataset):
         self.anatomy_scale = (float(anatomy_scale[0]), float(anatomy_scale[1]))
         if not 0.0 < self.anatomy_scale[0] <= self.anatomy_scale[1]:
             raise ValueError(f"anatomy_scale must be (low, high) with 0 < low <= high, got {anatomy_scale}")
+        self.orientation_prob = float(orientation_prob)
+        self.orientation_max = float(orientation_max)
+        if not 0.0 <= self.orientation_prob <= 1.0 or not 0.0 <= self.orientation_max <= 180.0:
+            raise ValueError(f"orientation_prob must be in [0, 1] and orientation_max in [0, 180] degrees, got "
+                             f"{orientation_prob}, {orientation_max}")
         self.hu_range = (float(hu_range[0]), float(hu_range[1]))
         self.seed = int(seed)
         self._epoch = 0
@@ -375,7 +386,7 @@ class RigidPairSampler(IterableDataset):
         t1 = a @ src.matrix  # fixed -> moving of the sample
         grid = Grid.centered(self.network_size, self.network_spacing, g)
         ctx_grid = Grid.centered(self.context_size, self.context_spacing, g)
-        stretch = self._stretch(rng, g)  # the sample's anatomy: CT(stretch @ x) at CT point x
+        stretch = self._stretch(rng, g) @ self._orientation(rng, g)  # the sample's anatomy: CT(stretch @ x) at x
         fixed = src.fixed.sample(grid, stretch, AIR_HU)
         context = src.context.sample(ctx_grid, stretch, AIR_HU)
         if rng.random() < self.fixed_couch_removed_prob:
@@ -422,6 +433,13 @@ class RigidPairSampler(IterableDataset):
             out[:3, :3] = np.diag(1.0 / factors)  # the anatomy grows by `factors`: CT points shrink towards g
             out[:3, 3] = center - out[:3, :3] @ center
         return out
+
+    def _orientation(self, rng: np.random.Generator, center: np.ndarray) -> np.ndarray:
+        """4x4: a rotation about ``center`` (LPS mm) with probability ``orientation_prob``, else the identity."""
+        if self.orientation_prob > 0.0 and rng.random() < self.orientation_prob:
+            angles = rng.uniform(-self.orientation_max, self.orientation_max, size=3)
+            return params_to_matrix([0.0, 0.0, 0.0, *angles], center)
+        return np.eye(4)
 
     def _field_of_view(self, covered: torch.Tensor, grid: Grid, rng: np.random.Generator) -> torch.Tensor:
         """The scanner's field of view on the grid: a cylinder about the grid's z axis cut by a slab along z, never

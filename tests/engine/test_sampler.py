@@ -44,18 +44,26 @@ def _ncc(a: torch.Tensor, b: torch.Tensor, m: torch.Tensor) -> float:
     return float((a * b).sum() / (a.norm() * b.norm() + 1e-9))
 
 
-@pytest.mark.parametrize("anatomy_prob", [0.0, 1.0])
-def test_ground_truth_aligns_moving_with_fixed(ct_sources, anatomy_prob):
+@pytest.mark.parametrize(("anatomy_prob", "orientation_prob"), [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)])
+def test_ground_truth_aligns_moving_with_fixed(ct_sources, anatomy_prob, orientation_prob):
     """Warping the CBCT by the recorded parameters (fixed -> moving about the grid centre) puts it on the CT; the
     same parameters with the rotation's sign flipped, or with tx and ty swapped, do not. Also where both images show
-    the CT stretched by another factor per axis (the truth stays the rigid motion)."""
+    the CT stretched by another factor per axis, turned about the isocentre, or both (the truth stays the rigid
+    motion between them)."""
     sampler = _sampler(ct_sources, motions=(MotionRange(20.0, 20.0, min_translation=10.0),),
-                       anatomy_prob=anatomy_prob, anatomy_scale=(0.8, 1.25))
+                       anatomy_prob=anatomy_prob, anatomy_scale=(0.8, 1.25), orientation_prob=orientation_prob,
+                       orientation_max=30.0)
     rng = np.random.default_rng(0)
     canon = Grid.centered(SIZE, SPACING)
-    for _ in range(3):
+    checked = 0
+    for _ in range(12):
+        if checked == 3:
+            break
         d = sampler.draw(rng)
         p = d["rigid_params"]["params"][None].double()
+        if float(p[0, 3:].abs().max()) <= 5.0 or abs(float(p[0, 0] - p[0, 1])) <= 3.0:
+            continue  # a draw the checks below cannot tell from its flipped or swapped twin
+        checked += 1
 
         def warped(params, moving=d["moving"]):
             return warp_volume(moving[None], params_to_matrix_torch(params).float(), canon, canon)[0]
@@ -63,7 +71,6 @@ def test_ground_truth_aligns_moving_with_fixed(ct_sources, anatomy_prob):
         inside = warp_volume(d["moving_fov"][None], params_to_matrix_torch(p).float(), canon, canon)[0] > 0.99
         mask = inside & (d["fixed"] > 0.05)
         right = _ncc(warped(p), d["fixed"], mask)
-        assert float(p[0, 3:].abs().max()) > 5.0 and abs(float(p[0, 0] - p[0, 1])) > 3.0  # the checks can tell
         flipped = _ncc(warped(p * torch.tensor([[1, 1, 1, -1, -1, -1.0]])), d["fixed"], mask)
         swapped = _ncc(warped(p[:, [1, 0, 2, 3, 4, 5]]), d["fixed"], mask)
         assert right > 0.97
@@ -71,6 +78,7 @@ def test_ground_truth_aligns_moving_with_fixed(ct_sources, anatomy_prob):
         # the matrix and centre recorded beside the parameters are the same transform
         m = np.asarray(d["rigid_params"]["matrix"])
         assert np.allclose(params_to_matrix(p[0].numpy(), d["rigid_params"]["center"].numpy()), m, atol=1e-4)
+    assert checked == 3
 
 
 def test_context_is_the_ct_on_the_context_grid_of_the_same_centre(ct_sources):
@@ -159,6 +167,65 @@ def test_anatomy_stretch_moves_the_body_masks_with_the_body(ct_sources):
         assert int(tissue.sum()) > 1000
         lost = float((cut[key][tissue] < tissue_hu).float().mean())
         assert lost < 0.005, (key, lost)
+
+
+class _OrientationSpy(RigidPairSampler):
+    """Keeps the anatomy's rotation of the last draw (4x4 about the isocentre, LPS mm)."""
+
+    def _orientation(self, rng, center):
+        self.turn = super()._orientation(rng, center)
+        self.turn_center = np.asarray(center, dtype=np.float64)
+        return self.turn
+
+
+def test_orientation_turns_both_images_about_the_isocentre(ct_sources):
+    """``orientation_prob`` 1: the sample's CT is the unturned sample's CT turned about the isocentre (the grid centre)
+    by the drawn rotation: warping the unturned one by that rotation gives it, by the inverse rotation or about
+    another centre it does not. ``orientation_max`` 0 draws the same numbers with no turn, so both samples share the
+    motion."""
+    base = {"network_size": SIZE, "network_spacing": SPACING, "degradation": {"prob": 0.0}, "fov_prob": 0.0,
+            "static_couch_prob": 0.0, "moving_couch_removed_prob": 0.0, "fixed_couch_removed_prob": 0.0,
+            "motions": (MotionRange(10.0, 10.0),), "orientation_prob": 1.0}
+    turned = _OrientationSpy(ct_sources, orientation_max=30.0, **base)
+    plain = _OrientationSpy(ct_sources, orientation_max=0.0, **base)
+    a, b = turned.draw(np.random.default_rng(5)), plain.draw(np.random.default_rng(5))
+    assert torch.equal(a["rigid_params"]["params"], b["rigid_params"]["params"])
+    assert np.allclose(plain.turn, np.eye(4))
+    angles = np.degrees(np.arccos(np.clip((np.trace(turned.turn[:3, :3]) - 1) / 2, -1, 1)))
+    assert angles > 10.0  # a turn the checks can see
+    assert np.allclose(turned.turn[:3, :3] @ turned.turn_center + turned.turn[:3, 3], turned.turn_center)
+    canon = Grid.centered(SIZE, SPACING)
+    about_origin = np.eye(4)
+    about_origin[:3, :3] = turned.turn[:3, :3]  # the grid centre is the canonical grid's origin
+
+    def warped(m):
+        return warp_volume(b["fixed"][None], torch.as_tensor(m)[None].float(), canon, canon)[0]
+
+    mask = warped(about_origin) > 0.05
+    right = _ncc(warped(about_origin), a["fixed"], mask)
+    inverse = _ncc(warped(np.linalg.inv(about_origin)), a["fixed"], mask)
+    shifted = about_origin.copy()
+    shifted[:3, 3] = (np.eye(3) - shifted[:3, :3]) @ np.array([20.0, 0.0, 0.0])  # the same turn about another point
+    elsewhere = _ncc(warped(shifted), a["fixed"], mask)
+    assert right > 0.97
+    assert right - max(inverse, elsewhere) > 0.05, (right, inverse, elsewhere)
+
+
+def test_orientation_off_leaves_the_stream_as_it_was(ct_sources):
+    """``orientation_prob`` 0 (the default) draws nothing for it: a run resumed with the option off sees the samples
+    it saw before the option existed, whatever ``orientation_max``."""
+    common = {"motions": (MotionRange(20.0, 20.0),), "anatomy_prob": 0.5}
+    a = _sampler(ct_sources, **common).draw(np.random.default_rng(3))
+    b = _sampler(ct_sources, orientation_prob=0.0, orientation_max=40.0, **common).draw(np.random.default_rng(3))
+    for key in ("moving", "fixed", "context", "moving_fov"):
+        assert torch.equal(a[key], b[key])
+
+
+@pytest.mark.parametrize("kw", [{"orientation_prob": 1.5}, {"orientation_prob": -0.1}, {"orientation_max": -5.0},
+                                {"orientation_max": 200.0}])
+def test_orientation_options_are_checked(ct_sources, kw):
+    with pytest.raises(ValueError, match="orientation"):
+        _sampler(ct_sources, **kw)
 
 
 def test_anatomy_scale_is_checked(ct_sources):
