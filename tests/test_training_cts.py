@@ -187,20 +187,25 @@ def test_the_folds_script_takes_each_fold_up_where_it_stopped(tmp_path):
     assert zero.returncode == 2 and "positive integer" in zero.stderr
 
 
+def _training_script_env(tmp_path, **extra):
+    """The training script's path and an environment over fake DATA (with its clinical datalist) and SHARED folders
+    (``_fake_data``), the package's training CTs named, plus ``extra``."""
+    data, shared = _fake_data(tmp_path)
+    (data / "clinical").mkdir()
+    (data / "clinical" / "dataset.json").write_text("{}")
+    env = {**os.environ, "TRAIN_CT_NAMES": " ".join(TRAINING_CTS), "SHARED": str(shared), "DATA": str(data), **extra}
+    return str(REPO / "scripts" / "train_context_model.sh"), env
+
+
 def test_the_training_script_keeps_a_run_s_anatomy_stretch(tmp_path):
     """A run's ``ANATOMY_PROB`` is kept in its folder: another value is refused with exit status 2 and the folder
     left as it was; the same value passes the checks."""
     import subprocess
 
-    data, shared = _fake_data(tmp_path)
-    (data / "clinical").mkdir()
-    (data / "clinical" / "dataset.json").write_text("{}")
+    script, base = _training_script_env(tmp_path, PREPARE_DATA_ONLY="1")
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     (run_dir / "anatomy_prob").write_text("0.5\n")
-    base = {**os.environ, "TRAIN_CT_NAMES": " ".join(TRAINING_CTS), "SHARED": str(shared), "DATA": str(data),
-            "PREPARE_DATA_ONLY": "1"}
-    script = str(REPO / "scripts" / "train_context_model.sh")
     other = subprocess.run(["bash", script, str(run_dir), "1"], env={**base, "ANATOMY_PROB": "0.3"},
                            capture_output=True, text=True, timeout=60)
     assert other.returncode == 2 and "ANATOMY_PROB=0.5, not 0.3" in other.stderr
@@ -217,17 +222,12 @@ def test_the_training_script_keeps_a_run_s_orientation_and_passes_it_to_the_samp
     trained without them is refused with exit status 2 and the folder left as it was."""
     import subprocess
 
-    data, shared = _fake_data(tmp_path)
-    (data / "clinical").mkdir()
-    (data / "clinical" / "dataset.json").write_text("{}")
     shim = tmp_path / "bin"
     shim.mkdir()
     (shim / "python").write_text('#!/usr/bin/env bash\nprintf "%s\\n" "$@" > "$ARGS_FILE"\n')
     (shim / "python").chmod(0o755)
     args_file = tmp_path / "args.txt"
-    base = {**os.environ, "TRAIN_CT_NAMES": " ".join(TRAINING_CTS), "SHARED": str(shared), "DATA": str(data),
-            "PATH": f"{shim}:{os.environ['PATH']}", "ARGS_FILE": str(args_file)}
-    script = str(REPO / "scripts" / "train_context_model.sh")
+    script, base = _training_script_env(tmp_path, PATH=f"{shim}:{os.environ['PATH']}", ARGS_FILE=str(args_file))
 
     def run(run_dir, *args, **env):
         args_file.unlink(missing_ok=True)
@@ -273,9 +273,7 @@ def test_a_resumed_run_changes_its_anatomy_stretch_only_when_asked(tmp_path):
     import torch
     from monai.bundle import ConfigParser
 
-    data, shared = _fake_data(tmp_path)
-    (data / "clinical").mkdir()
-    (data / "clinical" / "dataset.json").write_text("{}")
+    script, base = _training_script_env(tmp_path, PREPARE_DATA_ONLY="1", ANATOMY_PROB="0.5")
     run_dir = tmp_path / "run"
     (run_dir / "models").mkdir(parents=True)
     parser = ConfigParser()
@@ -284,9 +282,6 @@ def test_a_resumed_run_changes_its_anatomy_stretch_only_when_asked(tmp_path):
     torch.save({"network": parser.get_parsed_content("network_def").state_dict()},
                run_dir / "models" / "checkpoint_checkpoint_epoch=7.pt")
     before = listing(run_dir)
-    base = {**os.environ, "TRAIN_CT_NAMES": " ".join(TRAINING_CTS), "SHARED": str(shared), "DATA": str(data),
-            "PREPARE_DATA_ONLY": "1", "ANATOMY_PROB": "0.5"}
-    script = str(REPO / "scripts" / "train_context_model.sh")
 
     def run(*args, **env):
         return subprocess.run(["bash", script, str(run_dir), *args], env={**base, **env}, capture_output=True,
