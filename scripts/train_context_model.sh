@@ -20,7 +20,8 @@
 # first epoch trained with NEW), so the run's docs can say which samples saw which data.
 # ORIENTATION_PROB, ORIENTATION_MAX: the share of samples whose anatomy is turned about the isocentre in both images
 # and the largest angle per axis (RigidPairSampler's orientation_prob, orientation_max; default 0 and 15 degrees); a
-# run's values are kept in RUN_DIR/orientation ("PROB MAX") and reused on --resume (other values: exit status 2).
+# run's values are kept in RUN_DIR/orientation ("PROB MAX") and reused on --resume (other values: exit status 2; one
+# of the two left out: the run's own; ORIENTATION_MAX alone for a new run: exit status 2).
 # One epoch = 100 iterations of batch 4 = 400 samples; 750 epochs = 300 000 samples.
 # Held out of training (never read here): thorax_4dct_phase00_itkelastix, head_tigre_ct (and the stock Shepp-Logan
 # phantom, the validation set), unless TRAIN_CT_NAMES names them (a leave-one-CT-out fold: scripts/train_loco.sh).
@@ -116,12 +117,15 @@ kept_orientation=""  # "PROB MAX" of the run in RUN (none: a run without the opt
 [ -f "$RUN/orientation" ] && kept_orientation=$(cat "$RUN/orientation")
 orientation=$kept_orientation
 if [ -n "${ORIENTATION_PROB:-}" ] || [ -n "${ORIENTATION_MAX:-}" ]; then
-    o_prob=${ORIENTATION_PROB:-0}; o_max=${ORIENTATION_MAX:-15}
+    if [ -z "${ORIENTATION_PROB:-}" ] && [ -z "$kept_orientation" ] && [ -z "$RESUME" ]; then
+        echo "train_context_model: ORIENTATION_MAX without ORIENTATION_PROB turns nothing: give both" >&2; exit 2
+    fi
+    read -r k_prob k_max <<< "${kept_orientation:-0 15}"
+    o_prob=${ORIENTATION_PROB:-$k_prob}; o_max=${ORIENTATION_MAX:-$k_max}  # one left out: the run's own
     [[ "$o_prob" =~ ^[0-9]*\.?[0-9]+$ ]] && [[ "$o_max" =~ ^[0-9]*\.?[0-9]+$ ]] \
         && awk -v p="$o_prob" -v m="$o_max" 'BEGIN { exit !(p + 0 <= 1 && m + 0 <= 180) }' || {
         echo "train_context_model: ORIENTATION_PROB must be in [0, 1] and ORIENTATION_MAX in [0, 180] degrees," \
              "got '$o_prob' and '$o_max'" >&2; exit 2; }
-    read -r k_prob k_max <<< "${kept_orientation:-0 15}"
     if { [ -n "$kept_orientation" ] || [ -n "$RESUME" ]; } \
             && ! { same_number "$k_prob" "$o_prob" && same_number "$k_max" "$o_max"; }; then
         echo "train_context_model: $RUN was trained with ORIENTATION_PROB ORIENTATION_MAX '$k_prob $k_max', not" \

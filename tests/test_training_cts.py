@@ -218,8 +218,8 @@ def test_the_training_script_keeps_a_run_s_anatomy_stretch(tmp_path):
 def test_the_training_script_keeps_a_run_s_orientation_and_passes_it_to_the_sampler(tmp_path):
     """``ORIENTATION_PROB`` / ``ORIENTATION_MAX``: a new run records them in its folder (``orientation``, "PROB MAX")
     and hands both to the sampler (``--train#dataset#orientation_prob`` / ``_max``, read from a stand-in for
-    ``python``); a resumed run takes them from the folder; another value, a bad value, or a value for a resumed run
-    trained without them is refused with exit status 2 and the folder left as it was."""
+    ``python``); a folder's values are used where none are given, and where one of the two is left out; another
+    value, a bad value, or ``ORIENTATION_MAX`` alone for a new run is refused with exit status 2, nothing written."""
     import subprocess
 
     shim = tmp_path / "bin"
@@ -262,6 +262,44 @@ def test_the_training_script_keeps_a_run_s_orientation_and_passes_it_to_the_samp
     from_folder = run(kept)  # nothing asked: the folder's values
     assert from_folder.returncode == 0 and sampler_args() == {"--train#dataset#orientation_prob": "0.5",
                                                               "--train#dataset#orientation_max": "20"}
+    max_only = run(kept, ORIENTATION_MAX="20")  # the probability left out: the folder's
+    assert max_only.returncode == 0 and sampler_args()["--train#dataset#orientation_prob"] == "0.5"
+    alone = run(tmp_path / "alone", ORIENTATION_MAX="30")
+    assert alone.returncode == 2 and "without ORIENTATION_PROB" in alone.stderr
+    assert not (tmp_path / "alone").exists()
+
+
+def test_a_resumed_run_keeps_its_orientation(tmp_path):
+    """A resumed run (a checkpoint of the config's network in its folder) refuses another orientation than its
+    recorded one, and a turn asked of a run trained without one (exit status 2, the folder as it was)."""
+    import subprocess
+
+    import torch
+    from monai.bundle import ConfigParser
+
+    script, base = _training_script_env(tmp_path, PREPARE_DATA_ONLY="1")
+    parser = ConfigParser()
+    configs = REPO / "bundles" / "cbct_ct_rigid" / "configs"
+    parser.read_config([str(configs / "train.json"), str(configs / "train_context.json")])
+    state = {"network": parser.get_parsed_content("network_def").state_dict()}
+    runs = {}
+    for name, recorded in (("turned", "0.5 20\n"), ("upright", None)):
+        runs[name] = tmp_path / name
+        (runs[name] / "models").mkdir(parents=True)
+        torch.save(state, runs[name] / "models" / "checkpoint_checkpoint_epoch=3.pt")
+        if recorded:
+            (runs[name] / "orientation").write_text(recorded)
+    before = {name: listing(d) for name, d in runs.items()}
+
+    def run(name, **env):
+        return subprocess.run(["bash", script, str(runs[name]), "9", "--resume"], env={**base, **env},
+                              capture_output=True, text=True, timeout=300)
+
+    other = run("turned", ORIENTATION_PROB="0.3")
+    assert other.returncode == 2 and "'0.5 20', not '0.3 20'" in other.stderr
+    asked = run("upright", ORIENTATION_PROB="0.5")
+    assert asked.returncode == 2 and "'0 15', not '0.5 15'" in asked.stderr
+    assert {name: listing(d) for name, d in runs.items()} == before
 
 
 def test_a_resumed_run_changes_its_anatomy_stretch_only_when_asked(tmp_path):

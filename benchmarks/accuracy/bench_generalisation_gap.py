@@ -106,6 +106,7 @@ def split_cts(shared: Path, seen: Sequence[str]) -> dict[str, list[str]]:
 
 
 def main() -> None:
+    """The command (the module doc): parse the options, draw and register both sides, print the tables."""
     ap = script_parser(__doc__)
     ap.add_argument("checkpoint", type=Path, nargs="?", default=None,
                     help="a training checkpoint or model.pt (default: the shipped bundle's weights)")

@@ -16,8 +16,9 @@ edge cannot give the motion away), the CT's couch (removed from the CT as the re
 CBCT's couch (the moved CT couch removed, a static treatment couch painted in the scanner frame), image-domain CBCT
 degradation, and optionally the anatomy itself: the CT stretched about the isocentre by a random factor per axis
 (``anatomy_prob``, ``anatomy_scale``), a body of another size and shape seen by both images, so that a few real CTs
-stand for more patients (the ground truth stays rigid). Every sample is computed with a handful of ``grid_sample``
-calls on volumes kept in memory, on the sampler's device (CPU or CUDA).
+stand for more patients, and then turned about the isocentre (``orientation_prob``, ``orientation_max``), the body
+seen in other orientations by both images (the ground truth stays the rigid motion between them). Every sample is
+computed with a handful of ``grid_sample`` calls on volumes kept in memory, on the sampler's device (CPU or CUDA).
 
 A sample (dict): ``moving``, ``fixed`` (``[1, *network_size]``, normalized HU), ``context`` (``[1,
 *context_size]``: the CT on the context grid, ``context_factor`` times the spacing, same centre), ``moving_fov``
@@ -265,10 +266,12 @@ class RigidPairSampler(IterableDataset):
             the range of the factor drawn per axis (L-R, A-P, S-I); the CT and the CBCT both show the stretched body
             (for ``cbct`` sources the CBCT is stretched about the isocentre's image under ``T0``), the truth is
             unchanged. ``0`` (the default) draws nothing from the stream for it.
-        orientation_prob, orientation_max: probability that a sample's anatomy is the CT turned about the isocentre
-            (after any stretch), and the largest angle per axis (degrees, uniform): the patient lying turned in both
-            scanners, so both images show the turned body, the truth (the setup error between them) unchanged.
-            ``0`` (the default) draws nothing from the stream for it.
+        orientation_prob, orientation_max: probability that a sample's anatomy is then turned about the isocentre,
+            and the largest angle per axis (degrees, uniform): the anatomy map is ``stretch @ turn`` (the stretched
+            body, turned), seen by the CT and the CBCT alike, as if the patient lay turned in both scanners (a kept
+            CT couch turns with the body, and for ``cbct`` sources the CBCT, its field-of-view edge included, is
+            turned about the isocentre's image under ``T0``); the truth is unchanged. ``0`` (the default) draws
+            nothing from the stream for it.
         hu_range: HU window mapped to [0, 1].
         seed: the stream's seed (each DataLoader worker draws its own stream from it).
         device: where samples are computed.
@@ -386,17 +389,17 @@ class RigidPairSampler(IterableDataset):
         t1 = a @ src.matrix  # fixed -> moving of the sample
         grid = Grid.centered(self.network_size, self.network_spacing, g)
         ctx_grid = Grid.centered(self.context_size, self.context_spacing, g)
-        stretch = self._stretch(rng, g) @ self._orientation(rng, g)  # the sample's anatomy: CT(stretch @ x) at x
-        fixed = src.fixed.sample(grid, stretch, AIR_HU)
-        context = src.context.sample(ctx_grid, stretch, AIR_HU)
+        anatomy = self._stretch(rng, g) @ self._orientation(rng, g)  # the sample shows CT(anatomy @ x) at x
+        fixed = src.fixed.sample(grid, anatomy, AIR_HU)
+        context = src.context.sample(ctx_grid, anatomy, AIR_HU)
         if rng.random() < self.fixed_couch_removed_prob:
-            fixed = torch.where(src.body.sample(grid, stretch) > 0.5, fixed, torch.full_like(fixed, AIR_HU))
-            context = torch.where(src.body.sample(ctx_grid, stretch) > 0.5, context,
+            fixed = torch.where(src.body.sample(grid, anatomy) > 0.5, fixed, torch.full_like(fixed, AIR_HU))
+            context = torch.where(src.body.sample(ctx_grid, anatomy) > 0.5, context,
                                   torch.full_like(context, AIR_HU))
-        # a CBCT point y shows the anatomy of the CT point stretch @ t1^-1 @ y, the source CBCT's point T0 @ that
-        to_ct = stretch @ np.linalg.inv(t1)
+        # a CBCT point y shows the anatomy of the CT point anatomy @ t1^-1 @ y, the source CBCT's point T0 @ that
+        to_ct = anatomy @ np.linalg.inv(t1)
         if src.kind == "cbct":
-            to_cbct = src.matrix @ to_ct  # T0 @ A^-1 without a stretch
+            to_cbct = src.matrix @ to_ct  # T0 @ A^-1 without a stretch or a turn
             moving = src.moving.sample(grid, to_cbct, AIR_HU)
             covered = _inside(src.moving.grid, grid, to_cbct, moving.device)
             if src.moving_fov is not None:

@@ -178,17 +178,20 @@ class _OrientationSpy(RigidPairSampler):
         return self.turn
 
 
-def test_orientation_turns_both_images_about_the_isocentre(ct_sources):
+@pytest.mark.parametrize("anatomy_prob", [0.0, 1.0])
+def test_orientation_turns_both_images_about_the_isocentre(ct_sources, anatomy_prob):
     """``orientation_prob`` 1: the sample's CT is the unturned sample's CT turned about the isocentre (the grid centre)
     by the drawn rotation: warping the unturned one by that rotation gives it, by the inverse rotation or about
     another centre it does not. ``orientation_max`` 0 draws the same numbers with no turn, so both samples share the
-    motion."""
+    motion (and the stretch: with one drawn per axis, the turned sample is the stretched body turned, not the turned
+    body stretched along the grid's axes)."""
     base = {"network_size": SIZE, "network_spacing": SPACING, "degradation": {"prob": 0.0}, "fov_prob": 0.0,
             "static_couch_prob": 0.0, "moving_couch_removed_prob": 0.0, "fixed_couch_removed_prob": 0.0,
-            "motions": (MotionRange(10.0, 10.0),), "orientation_prob": 1.0}
+            "motions": (MotionRange(10.0, 10.0),), "orientation_prob": 1.0, "anatomy_prob": anatomy_prob,
+            "anatomy_scale": (0.75, 1.3)}
     turned = _OrientationSpy(ct_sources, orientation_max=30.0, **base)
     plain = _OrientationSpy(ct_sources, orientation_max=0.0, **base)
-    a, b = turned.draw(np.random.default_rng(5)), plain.draw(np.random.default_rng(5))
+    a, b = turned.draw(np.random.default_rng(5), tries=1), plain.draw(np.random.default_rng(5), tries=1)
     assert torch.equal(a["rigid_params"]["params"], b["rigid_params"]["params"])
     assert np.allclose(plain.turn, np.eye(4))
     angles = np.degrees(np.arccos(np.clip((np.trace(turned.turn[:3, :3]) - 1) / 2, -1, 1)))
@@ -205,20 +208,37 @@ def test_orientation_turns_both_images_about_the_isocentre(ct_sources):
     right = _ncc(warped(about_origin), a["fixed"], mask)
     inverse = _ncc(warped(np.linalg.inv(about_origin)), a["fixed"], mask)
     shifted = about_origin.copy()
-    shifted[:3, 3] = (np.eye(3) - shifted[:3, :3]) @ np.array([20.0, 0.0, 0.0])  # the same turn about another point
+    shifted[:3, 3] = (np.eye(3) - shifted[:3, :3]) @ np.array([60.0, 0.0, 0.0])  # the same turn about another point
     elsewhere = _ncc(warped(shifted), a["fixed"], mask)
     assert right > 0.97
     assert right - max(inverse, elsewhere) > 0.05, (right, inverse, elsewhere)
 
 
+class _NoTurn(RigidPairSampler):
+    """The sampler as it was before the option: no turn, nothing drawn for it."""
+
+    def _orientation(self, rng, center):
+        return np.eye(4)
+
+
 def test_orientation_off_leaves_the_stream_as_it_was(ct_sources):
     """``orientation_prob`` 0 (the default) draws nothing for it: a run resumed with the option off sees the samples
-    it saw before the option existed, whatever ``orientation_max``."""
-    common = {"motions": (MotionRange(20.0, 20.0),), "anatomy_prob": 0.5}
-    a = _sampler(ct_sources, **common).draw(np.random.default_rng(3))
-    b = _sampler(ct_sources, orientation_prob=0.0, orientation_max=40.0, **common).draw(np.random.default_rng(3))
+    it saw before the option existed (a sampler without the option), whatever ``orientation_max``, and its generator
+    is left where that one leaves it; a probability above 0 draws (the check can tell)."""
+    common = {"network_size": SIZE, "network_spacing": SPACING, "degradation": {"prob": 0.0}, "fov_prob": 0.0,
+              "motions": (MotionRange(20.0, 20.0),), "anatomy_prob": 0.5}
+    old_rng, rng, drawing_rng = (np.random.default_rng(3) for _ in range(3))
+    old = _NoTurn(ct_sources, **common).draw(old_rng)
+    off = RigidPairSampler(ct_sources, orientation_prob=0.0, orientation_max=40.0, **common).draw(rng)
     for key in ("moving", "fixed", "context", "moving_fov"):
-        assert torch.equal(a[key], b[key])
+        assert torch.equal(old[key], off[key])
+    assert old_rng.random() == rng.random()
+    RigidPairSampler(ct_sources, orientation_prob=1e-12, **common).draw(drawing_rng)
+    assert drawing_rng.random() != np.random.default_rng(3).random()  # not at the start any more
+    old_rng2, drawing_rng2 = np.random.default_rng(3), np.random.default_rng(3)
+    _NoTurn(ct_sources, **common).draw(old_rng2)
+    RigidPairSampler(ct_sources, orientation_prob=1e-12, **common).draw(drawing_rng2)
+    assert old_rng2.random() != drawing_rng2.random()
 
 
 @pytest.mark.parametrize("kw", [{"orientation_prob": 1.5}, {"orientation_prob": -0.1}, {"orientation_max": -5.0},
