@@ -105,6 +105,24 @@ def split_cts(shared: Path, seen: Sequence[str]) -> dict[str, list[str]]:
     return {"trained on": [n for n in seen if n in found], "held out": [n for n in found if n not in seen]}
 
 
+def paired_changes(rows: Sequence[dict[str, Any]], baseline: Sequence[dict[str, Any]], limit: float = 5.0
+                   ) -> tuple[int, int]:
+    """``(fixed, broken)``: how many draws are under ``limit`` (mm) only in ``rows`` and only in ``baseline``, the
+    same draws of two checkpoints (each row's ``params`` and ``ct`` must agree: ``ValueError`` otherwise).
+
+    >>> def draw(params, mm):
+    ...     return {"ct": "a", "params": [params], "distance_mm": mm}
+    >>> paired_changes([draw(1.0, 0.5), draw(2.0, 9.0)], [draw(1.0, 7.0), draw(2.0, 8.0)])
+    (1, 0)
+    """
+    if len(rows) != len(baseline) or any(r["ct"] != b["ct"] or r["params"] != b["params"]
+                                         for r, b in zip(rows, baseline)):
+        raise ValueError("the baseline holds other draws (another seed, sample count or CT split)")
+    fixed = sum(r["distance_mm"] < limit <= b["distance_mm"] for r, b in zip(rows, baseline))
+    broken = sum(b["distance_mm"] < limit <= r["distance_mm"] for r, b in zip(rows, baseline))
+    return int(fixed), int(broken)
+
+
 def main() -> None:
     """The command (the module doc): parse the options, draw and register both sides, print the tables."""
     ap = script_parser(__doc__)
@@ -115,9 +133,18 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=123)
     ap.add_argument("--results", type=Path, default=None, help="a file for the printed report (and a .json beside)")
+    ap.add_argument("--baseline", type=Path, default=None,
+                    help="another checkpoint's .json of the same draws (same seed, --samples and CTs): the draws "
+                         "under 5 mm in only one of the two, per side")
     args = ap.parse_args()
     if args.samples < 1:
         ap.error("--samples must be at least 1")
+    baseline = None
+    if args.baseline is not None:
+        try:
+            baseline = json.loads(args.baseline.read_text())
+        except (OSError, ValueError) as exc:
+            ap.error(f"--baseline {args.baseline}: {exc}")
     out = Tee()
     monitor, t0 = start_run(out, __spec__.name if __spec__ else "bench_generalisation_gap", args.threads, "cpu",
                             str(args.checkpoint or "the shipped bundle"))
@@ -185,6 +212,16 @@ def main() -> None:
     out(f"Gap where the field of view covers >= 0.8 of the grid: share < 5 mm {shares['trained on']:.2f} on the "
         f"trained-on CTs, {shares['held out']:.2f} held out")
     out()
+    if baseline is not None:
+        for side, rows in sides.items():
+            try:
+                fixed, broken = paired_changes(rows, baseline.get(side, []))
+            except ValueError as exc:
+                out(f"Against {args.baseline}, {side}: not compared ({exc})")
+                continue
+            out(f"Against {args.baseline}, {side}: {fixed} draws under 5 mm only here, {broken} only there "
+                f"(of {len(rows)})")
+        out()
     if args.results is not None:
         args.results.parent.mkdir(parents=True, exist_ok=True)
         args.results.with_suffix(".json").write_text(json.dumps(sides) + "\n")

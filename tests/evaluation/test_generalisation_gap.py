@@ -2,7 +2,14 @@
 
 import pytest
 
-from benchmarks.accuracy.bench_generalisation_gap import FOV_ORDER, REAL_CTS, fov_group, rotated_axes, split_cts
+from benchmarks.accuracy.bench_generalisation_gap import (
+    FOV_ORDER,
+    REAL_CTS,
+    fov_group,
+    paired_changes,
+    rotated_axes,
+    split_cts,
+)
 
 
 def test_split_puts_each_found_ct_on_exactly_one_side(tmp_path):
@@ -35,3 +42,26 @@ def test_rotated_axes_counts_angles_not_translations_and_ignores_sign():
     assert rotated_axes([0.0, 0.0, 0.0, 25.0, -25.0, 25.0]) == 0  # the limit itself is not above it
     assert rotated_axes([0.0, 0.0, 0.0, 45.0, -26.0, 31.0]) == 3
     assert rotated_axes([0.0, 0.0, 0.0, 45.0, 10.0, 10.0], limit=40.0) == 1
+
+
+def _draw(params, mm, ct="a"):
+    return {"ct": ct, "params": [params, 0.0], "distance_mm": mm}
+
+
+def test_paired_changes_count_each_direction_at_the_limit():
+    now = [_draw(1.0, 0.5), _draw(2.0, 9.0), _draw(3.0, 5.0), _draw(4.0, 4.99), _draw(5.0, 1.0)]
+    before = [_draw(1.0, 7.0), _draw(2.0, 8.0), _draw(3.0, 4.0), _draw(4.0, 5.0), _draw(5.0, 2.0)]
+    # draw 1 fixed, draw 3 broken (5.0 is not under 5), draw 4 fixed (4.99 against 5.0); 2 and 5 unchanged
+    assert paired_changes(now, before) == (2, 1)
+    assert paired_changes(before, now) == (1, 2)
+    assert paired_changes(now, before, limit=2.0) == (2, 0)  # draws 1 and 5 (1.0 against 2.0)
+
+
+@pytest.mark.parametrize("other", [
+    [_draw(1.0, 0.5)],  # fewer draws
+    [_draw(1.0, 0.5), _draw(2.5, 0.5)],  # another motion
+    [_draw(1.0, 0.5), _draw(2.0, 0.5, ct="b")],  # another CT
+])
+def test_paired_changes_refuse_other_draws(other):
+    with pytest.raises(ValueError, match="other draws"):
+        paired_changes([_draw(1.0, 0.5), _draw(2.0, 0.5)], other)
