@@ -62,6 +62,30 @@ fi
 if [ -n "$INIT" ] && [ -n "$RESUME" ]; then
     echo "train_context_model: INIT starts a new run; a resumed run continues from its checkpoint" >&2; exit 2
 fi
+same_number() { awk -v a="$1" -v b="$2" 'BEGIN { exit !(a + 0 == b + 0) }'; }
+# the orientation first: its checks need no python
+kept_orientation=""  # "PROB MAX" of the run in RUN (none: a run without the option, 0 15)
+[ -f "$RUN/orientation" ] && kept_orientation=$(cat "$RUN/orientation")
+orientation=$kept_orientation
+if [ -n "${ORIENTATION_PROB:-}" ] || [ -n "${ORIENTATION_MAX:-}" ]; then
+    if [ -z "${ORIENTATION_PROB:-}" ] && [ -z "$kept_orientation" ] && [ -z "$RESUME" ]; then
+        echo "train_context_model: ORIENTATION_MAX without ORIENTATION_PROB turns nothing: give both" >&2; exit 2
+    fi
+    read -r k_prob k_max <<< "${kept_orientation:-0 15}"
+    o_prob=${ORIENTATION_PROB:-$k_prob}; o_max=${ORIENTATION_MAX:-$k_max}  # one left out: the run's own
+    [[ "$o_prob" =~ ^[0-9]*\.?[0-9]+$ ]] && [[ "$o_max" =~ ^[0-9]*\.?[0-9]+$ ]] \
+        && awk -v p="$o_prob" -v m="$o_max" 'BEGIN { exit !(p + 0 <= 1 && m + 0 <= 180) }' || {
+        echo "train_context_model: ORIENTATION_PROB must be in [0, 1] and ORIENTATION_MAX in [0, 180] degrees," \
+             "got '$o_prob' and '$o_max'" >&2; exit 2; }
+    if { [ -n "$kept_orientation" ] || [ -n "$RESUME" ]; } \
+            && ! { same_number "$k_prob" "$o_prob" && same_number "$k_max" "$o_max"; }; then
+        echo "train_context_model: $RUN was trained with ORIENTATION_PROB ORIENTATION_MAX '$k_prob $k_max', not" \
+             "'$o_prob $o_max': nothing was changed" >&2
+        exit 2
+    fi
+    orientation="$o_prob $o_max"
+fi
+[ -n "$orientation" ] && read -r o_prob o_max <<< "$orientation"
 if [ -n "$RESUME" ]; then
     if ! ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev/null 2>&1; then
         echo "train_context_model: --resume: no checkpoint in $RUN/models to resume from" >&2; exit 2
@@ -90,7 +114,6 @@ elif [ -e "$RUN/history.json" ] || ls "$RUN"/models/checkpoint_*epoch=*.pt >/dev
     echo "train_context_model: $RUN holds an earlier run: continue it with --resume, or choose another folder" >&2
     exit 2
 fi
-same_number() { awk -v a="$1" -v b="$2" 'BEGIN { exit !(a + 0 == b + 0) }'; }
 CHANGE_ANATOMY=${CHANGE_ANATOMY:-0}
 if [ "$CHANGE_ANATOMY" = 1 ] && { [ -z "$RESUME" ] || [ -z "${ANATOMY_PROB:-}" ]; }; then
     echo "train_context_model: CHANGE_ANATOMY=1 changes a resumed run's ANATOMY_PROB: give both --resume and" \
@@ -113,28 +136,6 @@ elif [ -f "$RUN/anatomy_prob" ]; then
     fi
     ANATOMY_PROB=$kept
 fi
-kept_orientation=""  # "PROB MAX" of the run in RUN (none: a run without the option, 0 15)
-[ -f "$RUN/orientation" ] && kept_orientation=$(cat "$RUN/orientation")
-orientation=$kept_orientation
-if [ -n "${ORIENTATION_PROB:-}" ] || [ -n "${ORIENTATION_MAX:-}" ]; then
-    if [ -z "${ORIENTATION_PROB:-}" ] && [ -z "$kept_orientation" ] && [ -z "$RESUME" ]; then
-        echo "train_context_model: ORIENTATION_MAX without ORIENTATION_PROB turns nothing: give both" >&2; exit 2
-    fi
-    read -r k_prob k_max <<< "${kept_orientation:-0 15}"
-    o_prob=${ORIENTATION_PROB:-$k_prob}; o_max=${ORIENTATION_MAX:-$k_max}  # one left out: the run's own
-    [[ "$o_prob" =~ ^[0-9]*\.?[0-9]+$ ]] && [[ "$o_max" =~ ^[0-9]*\.?[0-9]+$ ]] \
-        && awk -v p="$o_prob" -v m="$o_max" 'BEGIN { exit !(p + 0 <= 1 && m + 0 <= 180) }' || {
-        echo "train_context_model: ORIENTATION_PROB must be in [0, 1] and ORIENTATION_MAX in [0, 180] degrees," \
-             "got '$o_prob' and '$o_max'" >&2; exit 2; }
-    if { [ -n "$kept_orientation" ] || [ -n "$RESUME" ]; } \
-            && ! { same_number "$k_prob" "$o_prob" && same_number "$k_max" "$o_max"; }; then
-        echo "train_context_model: $RUN was trained with ORIENTATION_PROB ORIENTATION_MAX '$k_prob $k_max', not" \
-             "'$o_prob $o_max': nothing was changed" >&2
-        exit 2
-    fi
-    orientation="$o_prob $o_max"
-fi
-[ -n "$orientation" ] && read -r o_prob o_max <<< "$orientation"
 export OMP_WAIT_POLICY=PASSIVE
 if [ ! -f "$DATA/train.json" ]; then
     scripts/make_training_data.sh "$DATA" "$SHARED"

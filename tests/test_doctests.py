@@ -21,6 +21,7 @@ MODULES = [
     "monai_rigidreg.networks.context_net",
     "monai_rigidreg.losses.match_loss",
     "monai_rigidreg.engine.sampler",
+    "monai_rigidreg.engine.sources",
     "benchmarks.accuracy.bench_generalisation_gap",
 ]
 

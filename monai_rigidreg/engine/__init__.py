@@ -14,7 +14,8 @@ _MODULES = {
                  "TrainingCheckpointSaver", "TrainingCurveHandler", "TrainingProgressHandler", "plot_history"),
     "inferer": ("StagedInferer",),
     "metrics": ("RigidErrorHandler", "RigidErrorMetric", "error_handlers", "from_registration_output"),
-    "sampler": ("MotionRange", "RigidPairSampler", "load_sources"),
+    "sampler": ("MotionRange", "RigidPairSampler"),
+    "sources": ("load_sources",),
     "threads": ("ThreadTuner",),
 }
 _NAMES = {name: f"monai_rigidreg.engine.{module}" for module, names in _MODULES.items() for name in names}
