@@ -269,24 +269,30 @@ def test_the_training_script_keeps_a_run_s_orientation_and_passes_it_to_the_samp
     assert not (tmp_path / "alone").exists()
 
 
+def _config_checkpoint(run_dir, epoch):
+    """``run_dir/models/checkpoint_checkpoint_epoch=<epoch>.pt`` holding the bundle context config's network (what
+    the training script's ``--resume`` check accepts)."""
+    import torch
+    from monai.bundle import ConfigParser
+
+    parser = ConfigParser()
+    configs = REPO / "bundles" / "cbct_ct_rigid" / "configs"
+    parser.read_config([str(configs / "train.json"), str(configs / "train_context.json")])
+    (run_dir / "models").mkdir(parents=True, exist_ok=True)
+    torch.save({"network": parser.get_parsed_content("network_def").state_dict()},
+               run_dir / "models" / f"checkpoint_checkpoint_epoch={epoch}.pt")
+
+
 def test_a_resumed_run_keeps_its_orientation(tmp_path):
     """A resumed run (a checkpoint of the config's network in its folder) refuses another orientation than its
     recorded one, and a turn asked of a run trained without one (exit status 2, the folder as it was)."""
     import subprocess
 
-    import torch
-    from monai.bundle import ConfigParser
-
     script, base = _training_script_env(tmp_path, PREPARE_DATA_ONLY="1")
-    parser = ConfigParser()
-    configs = REPO / "bundles" / "cbct_ct_rigid" / "configs"
-    parser.read_config([str(configs / "train.json"), str(configs / "train_context.json")])
-    state = {"network": parser.get_parsed_content("network_def").state_dict()}
     runs = {}
     for name, recorded in (("turned", "0.5 20\n"), ("upright", None)):
         runs[name] = tmp_path / name
-        (runs[name] / "models").mkdir(parents=True)
-        torch.save(state, runs[name] / "models" / "checkpoint_checkpoint_epoch=3.pt")
+        _config_checkpoint(runs[name], 3)
         if recorded:
             (runs[name] / "orientation").write_text(recorded)
     before = {name: listing(d) for name, d in runs.items()}
@@ -308,17 +314,9 @@ def test_a_resumed_run_changes_its_anatomy_stretch_only_when_asked(tmp_path):
     ``--resume`` is refused."""
     import subprocess
 
-    import torch
-    from monai.bundle import ConfigParser
-
     script, base = _training_script_env(tmp_path, PREPARE_DATA_ONLY="1", ANATOMY_PROB="0.5")
     run_dir = tmp_path / "run"
-    (run_dir / "models").mkdir(parents=True)
-    parser = ConfigParser()
-    configs = REPO / "bundles" / "cbct_ct_rigid" / "configs"
-    parser.read_config([str(configs / "train.json"), str(configs / "train_context.json")])
-    torch.save({"network": parser.get_parsed_content("network_def").state_dict()},
-               run_dir / "models" / "checkpoint_checkpoint_epoch=7.pt")
+    _config_checkpoint(run_dir, 7)
     before = listing(run_dir)
 
     def run(*args, **env):

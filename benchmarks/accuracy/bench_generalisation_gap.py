@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.bench_common import Tee, end_run, script_parser, start_run, trained_on
+from benchmarks.bench_common import Tee, end_run, script_parser, set_threads, start_run, trained_on
 from monai_rigidreg.io.shared_data import HELD_OUT_CTS, TRAINING_CTS
 
 REAL_CTS = (*TRAINING_CTS, *HELD_OUT_CTS)
@@ -145,6 +145,7 @@ def main() -> None:
             baseline = json.loads(args.baseline.read_text())
         except (OSError, ValueError) as exc:
             ap.error(f"--baseline {args.baseline}: {exc}")
+    set_threads(args.threads)  # torch's and SimpleITK's (the sources are resampled by SimpleITK)
     out = Tee()
     monitor, t0 = start_run(out, __spec__.name if __spec__ else "bench_generalisation_gap", args.threads, "cpu",
                             str(args.checkpoint or "the shipped bundle"))
@@ -156,7 +157,6 @@ def main() -> None:
     from monai_rigidreg.losses import RigidRegistrationLoss
     from monai_rigidreg.transforms import RIGID_KEY
 
-    torch.set_num_threads(args.threads)
     net, settings = load_bundle_network(weights=args.checkpoint)
     reg = net.regression
     size = tuple(int(s) for s in settings["network_size"])

@@ -33,10 +33,10 @@ def ct_sources(ct_file):
                             isocenter_max=40.0)
 
 
-def _sampler(sources, **kw):
+def _sampler(sources, cls=RigidPairSampler, **kw):
     base = {"network_size": SIZE, "network_spacing": SPACING, "degradation": {"prob": 0.0}, "fov_prob": 0.0,
             "static_couch_prob": 0.0, "moving_couch_removed_prob": 0.0, "fixed_couch_removed_prob": 0.0}
-    return RigidPairSampler(sources, **{**base, **kw})
+    return cls(sources, **{**base, **kw})
 
 
 def _ncc(a: torch.Tensor, b: torch.Tensor, m: torch.Tensor) -> float:
@@ -185,12 +185,10 @@ def test_orientation_turns_both_images_about_the_isocentre(ct_sources, anatomy_p
     another centre it does not. ``orientation_max`` 0 draws the same numbers with no turn, so both samples share the
     motion (and the stretch: with one drawn per axis, the turned sample is the stretched body turned, not the turned
     body stretched along the grid's axes)."""
-    base = {"network_size": SIZE, "network_spacing": SPACING, "degradation": {"prob": 0.0}, "fov_prob": 0.0,
-            "static_couch_prob": 0.0, "moving_couch_removed_prob": 0.0, "fixed_couch_removed_prob": 0.0,
-            "motions": (MotionRange(10.0, 10.0),), "orientation_prob": 1.0, "anatomy_prob": anatomy_prob,
-            "anatomy_scale": (0.75, 1.3)}
-    turned = _OrientationSpy(ct_sources, orientation_max=30.0, **base)
-    plain = _OrientationSpy(ct_sources, orientation_max=0.0, **base)
+    common = {"motions": (MotionRange(10.0, 10.0),), "orientation_prob": 1.0, "anatomy_prob": anatomy_prob,
+              "anatomy_scale": (0.75, 1.3)}
+    turned = _sampler(ct_sources, _OrientationSpy, orientation_max=30.0, **common)
+    plain = _sampler(ct_sources, _OrientationSpy, orientation_max=0.0, **common)
     a, b = turned.draw(np.random.default_rng(5), tries=1), plain.draw(np.random.default_rng(5), tries=1)
     assert torch.equal(a["rigid_params"]["params"], b["rigid_params"]["params"])
     assert np.allclose(plain.turn, np.eye(4))
