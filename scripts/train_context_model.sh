@@ -3,7 +3,7 @@
 # bundles/cbct_ct_rigid/docs/README.md, "Training the next weights").
 #   usage: [DATA=data] [SHARED=../shared/data] [DEVICE=cpu|cuda] [BATCH=4] [EPOCH_LENGTH=100] [WORKERS=1] \
 #          [SAMPLER_DEVICE=cpu|cuda] [CASES=12] [SIM_DEVICE=cpu|cuda] [INIT=weights.pt [INIT_PARTIAL=1]] \
-#          [ANATOMY_PROB=0..1] [ORIENTATION_PROB=0..1 [ORIENTATION_MAX=deg]] \
+#          [[CHANGE_ANATOMY=1] ANATOMY_PROB=0..1] [[CHANGE_ORIENTATION=1] ORIENTATION_PROB=0..1 [ORIENTATION_MAX=deg]] \
 #          scripts/train_context_model.sh [RUN_DIR] [EPOCHS] [--resume]
 # First call: simulates the training data when it is missing (scripts/make_training_data.sh, about 8 minutes on
 # 2 cores; scripts/make_clinical_training_data.py, about 10 minutes), then trains from scratch. Resumed (3rd argument
@@ -22,6 +22,8 @@
 # and the largest angle per axis (RigidPairSampler's orientation_prob, orientation_max; default 0 and 15 degrees); a
 # run's values are kept in RUN_DIR/orientation ("PROB MAX") and reused on --resume (other values: exit status 2; one
 # of the two left out: the run's own; ORIENTATION_MAX alone for a new run: exit status 2).
+# CHANGE_ORIENTATION=1 with --resume and ORIENTATION_PROB and/or ORIENTATION_MAX: the run goes on with these values
+# instead (a run without the option counts as '0 15'); RUN_DIR/orientation_history gets "epoch N: OLD -> NEW".
 # One epoch = 100 iterations of batch 4 = 400 samples; 750 epochs = 300 000 samples.
 # Held out of training (never read here): thorax_4dct_phase00_itkelastix, head_tigre_ct (and the stock Shepp-Logan
 # phantom, the validation set), unless TRAIN_CT_NAMES names them (a leave-one-CT-out fold: scripts/train_loco.sh).
@@ -64,6 +66,7 @@ if [ -n "$INIT" ] && [ -n "$RESUME" ]; then
 fi
 same_number() { awk -v a="$1" -v b="$2" 'BEGIN { exit !(a + 0 == b + 0) }'; }
 # the orientation first: its checks need no python
+orientation_change=""  # "OLD -> NEW" (CHANGE_ORIENTATION=1)
 kept_orientation=""  # "PROB MAX" of the run in RUN (none: a run without the option, 0 15)
 [ -f "$RUN/orientation" ] && kept_orientation=$(cat "$RUN/orientation")
 orientation=$kept_orientation
@@ -79,11 +82,18 @@ if [ -n "${ORIENTATION_PROB:-}" ] || [ -n "${ORIENTATION_MAX:-}" ]; then
              "got '$o_prob' and '$o_max'" >&2; exit 2; }
     if { [ -n "$kept_orientation" ] || [ -n "$RESUME" ]; } \
             && ! { same_number "$k_prob" "$o_prob" && same_number "$k_max" "$o_max"; }; then
-        echo "train_context_model: $RUN was trained with ORIENTATION_PROB ORIENTATION_MAX '$k_prob $k_max', not" \
-             "'$o_prob $o_max': nothing was changed" >&2
-        exit 2
+        if [ "${CHANGE_ORIENTATION:-0}" != 1 ] || [ -z "$RESUME" ]; then
+            echo "train_context_model: $RUN was trained with ORIENTATION_PROB ORIENTATION_MAX '$k_prob $k_max', not" \
+                 "'$o_prob $o_max': nothing was changed (CHANGE_ORIENTATION=1 with --resume continues it with them)" >&2
+            exit 2
+        fi
+        orientation_change="$k_prob $k_max -> $o_prob $o_max"
     fi
     orientation="$o_prob $o_max"
+fi
+if [ "${CHANGE_ORIENTATION:-0}" = 1 ] && { [ -z "$RESUME" ] || [ -z "${orientation_change:-}" ]; }; then
+    echo "train_context_model: CHANGE_ORIENTATION=1 changes a resumed run's orientation: give --resume and" \
+         "ORIENTATION_PROB and/or ORIENTATION_MAX other than the run's" >&2; exit 2
 fi
 [ -n "$orientation" ] && read -r o_prob o_max <<< "$orientation"
 if [ -n "$RESUME" ]; then
@@ -155,7 +165,10 @@ if [ -n "$change_from" ]; then
 elif [ -n "${ANATOMY_PROB:-}" ] && [ ! -f "$RUN/anatomy_prob" ]; then
     echo "$ANATOMY_PROB" > "$RUN/anatomy_prob"
 fi
-if [ -n "${orientation:-}" ] && [ ! -f "$RUN/orientation" ]; then
+if [ -n "${orientation_change:-}" ]; then
+    echo "epoch $(($(newest_epoch "$RUN") + 1)): $orientation_change" >> "$RUN/orientation_history"
+    echo "$orientation" > "$RUN/orientation"
+elif [ -n "${orientation:-}" ] && [ ! -f "$RUN/orientation" ]; then
     echo "$orientation" > "$RUN/orientation"
 fi
 python -m monai.bundle run \

@@ -197,6 +197,25 @@ def _training_script_env(tmp_path, **extra):
     return str(REPO / "scripts" / "train_context_model.sh"), env
 
 
+def _python_stand_in(tmp_path):
+    """A stand-in for ``python`` that writes its arguments, one a line, to a file and exits 0: the training script
+    runs through its checks and its writes, then hands the stand-in what it would hand the bundle. Returns the file
+    and the environment entries (``PATH``, ``ARGS_FILE``) that put the stand-in first."""
+    shim = tmp_path / "bin"
+    shim.mkdir()
+    (shim / "python").write_text('#!/usr/bin/env bash\nprintf "%s\\n" "$@" > "$ARGS_FILE"\n')
+    (shim / "python").chmod(0o755)
+    args_file = tmp_path / "args.txt"
+    return args_file, {"PATH": f"{shim}:{os.environ['PATH']}", "ARGS_FILE": str(args_file)}
+
+
+def _orientation_args(args_file):
+    """The sampler's orientation arguments the training script handed the stand-in (``_python_stand_in``)."""
+    words = args_file.read_text().split("\n")
+    return {k: words[words.index(k) + 1] for k in ("--train#dataset#orientation_prob",
+                                                    "--train#dataset#orientation_max") if k in words}
+
+
 def test_the_training_script_keeps_a_run_s_anatomy_stretch(tmp_path):
     """A run's ``ANATOMY_PROB`` is kept in its folder: another value is refused with exit status 2 and the folder
     left as it was; the same value passes the checks."""
@@ -222,12 +241,8 @@ def test_the_training_script_keeps_a_run_s_orientation_and_passes_it_to_the_samp
     value, a bad value, or ``ORIENTATION_MAX`` alone for a new run is refused with exit status 2, nothing written."""
     import subprocess
 
-    shim = tmp_path / "bin"
-    shim.mkdir()
-    (shim / "python").write_text('#!/usr/bin/env bash\nprintf "%s\\n" "$@" > "$ARGS_FILE"\n')
-    (shim / "python").chmod(0o755)
-    args_file = tmp_path / "args.txt"
-    script, base = _training_script_env(tmp_path, PATH=f"{shim}:{os.environ['PATH']}", ARGS_FILE=str(args_file))
+    args_file, stand_in = _python_stand_in(tmp_path)
+    script, base = _training_script_env(tmp_path, **stand_in)
 
     def run(run_dir, *args, **env):
         args_file.unlink(missing_ok=True)
@@ -235,9 +250,7 @@ def test_the_training_script_keeps_a_run_s_orientation_and_passes_it_to_the_samp
                               text=True, timeout=60)
 
     def sampler_args():
-        words = args_file.read_text().split("\n")
-        return {k: words[words.index(k) + 1] for k in ("--train#dataset#orientation_prob",
-                                                        "--train#dataset#orientation_max") if k in words}
+        return _orientation_args(args_file)
 
     new = run(tmp_path / "new", ORIENTATION_PROB="0.5", ORIENTATION_MAX="20")
     assert new.returncode == 0, new.stderr
@@ -331,6 +344,45 @@ def test_a_resumed_run_changes_its_anatomy_stretch_only_when_asked(tmp_path):
     changed = run("9", "--resume", CHANGE_ANATOMY="1")
     assert changed.returncode == 0, changed.stderr
     assert listing(run_dir) == before  # PREPARE_DATA_ONLY: checks only, nothing written
+
+
+def test_a_resumed_run_changes_its_orientation_only_when_asked(tmp_path):
+    """A run trained without the turn (its checkpoint at epoch 7), resumed with ``ORIENTATION_PROB=0.5
+    ORIENTATION_MAX=30``: refused (exit status 2, the way named, the folder as it was) unless
+    ``CHANGE_ORIENTATION=1``, which records the new values, a history line naming the first epoch that trains with
+    them (8) and the values before ('0 15'), and hands them to the sampler; a later resume keeps them without the
+    switch. ``CHANGE_ORIENTATION=1`` without ``--resume``, or with the run's own values, is refused."""
+    import subprocess
+
+    args_file, stand_in = _python_stand_in(tmp_path)
+    script, base = _training_script_env(tmp_path, **stand_in)
+    run_dir = tmp_path / "run"
+    (run_dir / "models").mkdir(parents=True)
+    (run_dir / "models" / "checkpoint_checkpoint_epoch=7.pt").write_bytes(b"")  # the stand-in checks nothing
+    before = listing(run_dir)
+
+    def run(folder, *args, **env):
+        args_file.unlink(missing_ok=True)
+        return subprocess.run(["bash", script, str(folder), "9", *args], env={**base, **env}, capture_output=True,
+                              text=True, timeout=60)
+
+    turn = {"ORIENTATION_PROB": "0.5", "ORIENTATION_MAX": "30"}
+    refused = run(run_dir, "--resume", **turn)
+    assert refused.returncode == 2 and "'0 15', not '0.5 30'" in refused.stderr
+    assert "CHANGE_ORIENTATION=1" in refused.stderr and listing(run_dir) == before
+    new_run = run(tmp_path / "new", CHANGE_ORIENTATION="1", **turn)
+    assert new_run.returncode == 2 and "--resume" in new_run.stderr and not (tmp_path / "new").exists()
+    changed = run(run_dir, "--resume", CHANGE_ORIENTATION="1", **turn)
+    assert changed.returncode == 0, changed.stderr
+    assert (run_dir / "orientation").read_text() == "0.5 30\n"
+    assert (run_dir / "orientation_history").read_text() == "epoch 8: 0 15 -> 0.5 30\n"
+    assert _orientation_args(args_file) == {"--train#dataset#orientation_prob": "0.5",
+                                            "--train#dataset#orientation_max": "30"}
+    unchanged = run(run_dir, "--resume", CHANGE_ORIENTATION="1", **turn)  # already the run's values
+    assert unchanged.returncode == 2 and "CHANGE_ORIENTATION=1 changes" in unchanged.stderr
+    kept = run(run_dir, "--resume")
+    assert kept.returncode == 0 and _orientation_args(args_file)["--train#dataset#orientation_max"] == "30"
+    assert (run_dir / "orientation_history").read_text() == "epoch 8: 0 15 -> 0.5 30\n"
 
 
 def test_newest_checkpoint_is_the_largest_epoch_not_the_latest_file(tmp_path):
