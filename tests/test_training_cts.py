@@ -385,6 +385,45 @@ def test_a_resumed_run_changes_its_orientation_only_when_asked(tmp_path):
     assert (run_dir / "orientation_history").read_text() == "epoch 8: 0 15 -> 0.5 30\n"
 
 
+def test_a_branched_run_holds_the_newest_checkpoint_and_the_run_s_records(tmp_path):
+    """``scripts/branch_run.sh RUN NEW``: NEW gets RUN's newest checkpoint by epoch (12, not the later file 3), its
+    records (history, data options) and ``branched_from``, not its older checkpoints or exported model; RUN stays as
+    it was. An existing NEW or a RUN without a checkpoint: exit status 2, nothing written."""
+    import subprocess
+
+    run_dir = tmp_path / "run"
+    (run_dir / "models").mkdir(parents=True)
+    for epoch in (12, 3):  # epoch 3 written last
+        (run_dir / "models" / f"checkpoint_checkpoint_epoch={epoch}.pt").write_text(f"epoch {epoch}")
+    (run_dir / "models" / "model.pt").write_text("exported")
+    for name, text in (("history.json", "[]"), ("anatomy_prob", "0.5\n"), ("orientation", "0.5 30\n"),
+                       ("init.pt", "init")):
+        (run_dir / name).write_text(text)
+    before = listing(run_dir)
+
+    def branch(src, dst):
+        return subprocess.run(["bash", str(REPO / "scripts" / "branch_run.sh"), str(src), str(dst)],
+                              capture_output=True, text=True, timeout=60)
+
+    new = tmp_path / "branches" / "turned"
+    done = branch(run_dir, new)
+    assert done.returncode == 0, done.stderr
+    assert sorted(str(p.relative_to(new)) for p in new.rglob("*")) == [
+        "anatomy_prob", "branched_from", "history.json", "init.pt", "models",
+        "models/checkpoint_checkpoint_epoch=12.pt", "orientation"]
+    assert (new / "models" / "checkpoint_checkpoint_epoch=12.pt").read_text() == "epoch 12"
+    assert (new / "orientation").read_text() == "0.5 30\n"
+    assert (new / "branched_from").read_text() == f"{run_dir} epoch 12\n"
+    assert listing(run_dir) == before and sorted(p.name for p in new.parent.iterdir()) == ["turned"]
+    (new / "history.json").write_text("[1]")
+    again = branch(run_dir, new)
+    assert again.returncode == 2 and "exists" in again.stderr and (new / "history.json").read_text() == "[1]"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    none = branch(empty, tmp_path / "other")
+    assert none.returncode == 2 and "no checkpoint" in none.stderr and not (tmp_path / "other").exists()
+
+
 def test_newest_checkpoint_is_the_largest_epoch_not_the_latest_file(tmp_path):
     """``scripts/checkpoints.sh``: epoch 10 is newer than epoch 9 (not by the name's sort order, not by file time);
     a run without checkpoints has epoch 0 and no path."""
