@@ -166,18 +166,23 @@ class TrainingProgressHandler:
     them in one line. Its totals are saved with the checkpoints (``state_dict``; put it in the saver's and the
     resume handler's dictionaries). At the start it tells a dataset with ``set_epoch`` (an endless sampler such as
     :class:`~monai_rigidreg.engine.sampler.RigidPairSampler`) the epoch it starts at, so a resumed run draws a new
-    stream rather than the first run's again.
+    stream rather than the first run's again. Given the network, each epoch also records ``train_bfloat16`` (1.0
+    where a submodule trains under bfloat16 autocast, its ``train_autocast``, else 0.0; the config chooses it by the
+    machine, so a run resumed on other machines says per epoch which precision its encoders trained in), logged at
+    the start.
 
     Args:
         batch_size: samples per iteration (per process).
         dataset: the training dataset (``set_epoch`` is called where it has one).
         world_size: processes training together.
+        network: the network being trained (optional), for ``train_bfloat16``.
     """
 
-    def __init__(self, batch_size: int, dataset: Any = None, world_size: int = 1) -> None:
+    def __init__(self, batch_size: int, dataset: Any = None, world_size: int = 1, network: Any = None) -> None:
         self.batch_size = int(batch_size)
         self.dataset = dataset
         self.world_size = int(world_size)
+        self.network = network
         self.samples = 0
         self.wall_time_s = 0.0
         self._reset()
@@ -201,9 +206,20 @@ class TrainingProgressHandler:
         engine.add_event_handler(Events.ITERATION_COMPLETED, self._iteration_completed)
         engine.add_event_handler(Events.EPOCH_COMPLETED, self._epoch_completed)
 
+    def _bfloat16(self) -> float | None:
+        """1.0 where a submodule of the network trains under bfloat16 autocast, 0.0 where none does, None without
+        the network."""
+        if self.network is None:
+            return None
+        modules = self.network.modules() if hasattr(self.network, "modules") else [self.network]
+        return float(any(getattr(m, "train_autocast", None) == "bfloat16" for m in modules))
+
     def _started(self, engine: Any) -> None:
         if self.dataset is not None and hasattr(self.dataset, "set_epoch"):
             self.dataset.set_epoch(engine.state.epoch)
+        if self._bfloat16() is not None:
+            logger.info("training precision of the encoders: %s",
+                        "bfloat16 autocast" if self._bfloat16() else "float32")
         self._last = time.perf_counter()
         self._epoch_start = self._last
         self._samples_at_epoch = self.samples
@@ -235,6 +251,8 @@ class TrainingProgressHandler:
         stats = {"train_samples": float(self.samples), "train_wall_time_s": self.wall_time_s,
                  "train_samples_per_s": (self.samples - self._samples_at_epoch) / elapsed,
                  "train_data_wait_s": self._wait / n, "train_step_s": self._step / n}
+        if self._bfloat16() is not None:
+            stats["train_bfloat16"] = self._bfloat16()
         engine.state.metrics.update(stats)
         logger.info("epoch %d: %d samples seen, %.1f h of training, %.2f samples/s this epoch; per iteration "
                     "%.3f s waiting for data, %.3f s in the network step", engine.state.epoch, self.samples,

@@ -60,31 +60,42 @@ class _SwappedWeightGradConv3d(torch.autograd.Function):
     (``benchmarks/speed/bench_network_paths.py``); a whole context-network step beside a busy process at 2 threads
     3.83 -> 2.12 s (``benchmarks/speed/bench_training_threads.py``). The input gradient is PyTorch's own
     (``aten.convolution_backward``), the bias gradient the output gradient's sum.
+
+    Under autocast (the context network's ``train_autocast``) the convolution runs in autocast's precision, as
+    ``F.conv3d`` would: the inputs are saved cast to the output's dtype, the backward computes in that dtype and
+    returns each gradient in the dtype of the tensor it belongs to (as ``F.conv3d``'s casts do).
     """
 
     @staticmethod
     def forward(ctx, input, weight, bias, stride, padding):  # noqa: ANN001, ANN205 (autograd.Function)
+        out = _conv3d(input, weight, bias, stride, padding)  # autocast, where on, casts inside F.conv3d
+        ctx.dtypes = (input.dtype, weight.dtype, None if bias is None else bias.dtype)
+        if out.dtype != input.dtype or out.dtype != weight.dtype:
+            input, weight = input.to(out.dtype), weight.to(out.dtype)
         ctx.save_for_backward(input, weight)
         ctx.stride, ctx.padding, ctx.has_bias = stride, padding, bias is not None
-        return _conv3d(input, weight, bias, stride, padding)
+        return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):  # noqa: ANN001, ANN205
         input, weight = ctx.saved_tensors
+        input_dtype, weight_dtype, bias_dtype = ctx.dtypes
         grad_input = grad_weight = grad_bias = None
-        if ctx.needs_input_grad[0]:
-            grad_input = torch.ops.aten.convolution_backward(
-                grad, input, weight, None, list(ctx.stride), list(ctx.padding), [1, 1, 1], False, [0, 0, 0], 1,
-                [True, False, False])[0]
-        if ctx.needs_input_grad[1]:
-            px, py, pz = ctx.padding
-            padded = nn.functional.pad(input, (pz, pz, py, py, px, px)) if px or py or pz else input
-            full = nn.functional.conv3d(padded.transpose(0, 1), grad.transpose(0, 1), dilation=ctx.stride)
-            kx, ky, kz = weight.shape[2:]
-            grad_weight = full[:, :, :kx, :ky, :kz].transpose(0, 1)
-        if ctx.has_bias and ctx.needs_input_grad[2]:
-            grad_bias = grad.sum((0, 2, 3, 4))
+        with torch.autocast(grad.device.type, enabled=False):
+            compute = grad.to(input.dtype)
+            if ctx.needs_input_grad[0]:
+                grad_input = torch.ops.aten.convolution_backward(
+                    compute, input, weight, None, list(ctx.stride), list(ctx.padding), [1, 1, 1], False, [0, 0, 0],
+                    1, [True, False, False])[0].to(input_dtype)
+            if ctx.needs_input_grad[1]:
+                px, py, pz = ctx.padding
+                padded = nn.functional.pad(input, (pz, pz, py, py, px, px)) if px or py or pz else input
+                full = nn.functional.conv3d(padded.transpose(0, 1), compute.transpose(0, 1), dilation=ctx.stride)
+                kx, ky, kz = weight.shape[2:]
+                grad_weight = full[:, :, :kx, :ky, :kz].transpose(0, 1).to(weight_dtype)
+            if ctx.has_bias and ctx.needs_input_grad[2]:
+                grad_bias = grad.sum((0, 2, 3, 4), dtype=torch.promote_types(grad.dtype, bias_dtype)).to(bias_dtype)
         return grad_input, grad_weight, grad_bias, None, None
 
 

@@ -143,3 +143,26 @@ def test_resume_handler_partial_init_takes_only_matching_tensors(tmp_path):
     with pytest.raises(ValueError, match="no tensor matches"):
         ResumeHandler(tmp_path / "none", {"network": torch.nn.Conv1d(1, 1, 3)}, resume=False,
                       init_weights=tmp_path / "other.pt", init_partial=True).attach(Engine(lambda e, b: None))
+
+
+@pytest.mark.parametrize("autocast, expected", [("bfloat16", 1.0), (None, 0.0)])
+def test_progress_handler_records_the_encoders_training_precision(autocast, expected):
+    """``TrainingProgressHandler(network=...)``: each epoch's metrics say whether a submodule trained under bfloat16
+    autocast (``train_bfloat16``), beside the samples seen (batch size x iterations); without the network there is no
+    such entry."""
+    from ignite.engine import Engine
+
+    from monai_rigidreg.engine import TrainingProgressHandler
+
+    inner = torch.nn.Linear(2, 2)
+    inner.train_autocast = autocast
+    network = torch.nn.Sequential(torch.nn.Identity(), inner)
+    for net in (network, None):
+        engine = Engine(lambda e, b: 0.0)
+        TrainingProgressHandler(batch_size=3, network=net).attach(engine)
+        engine.run([0] * 5, max_epochs=2)
+        assert engine.state.metrics["train_samples"] == 30.0
+        if net is None:
+            assert "train_bfloat16" not in engine.state.metrics
+        else:
+            assert engine.state.metrics["train_bfloat16"] == expected

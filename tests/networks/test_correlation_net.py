@@ -447,6 +447,35 @@ def test_onednn_conv_weight_gradient_at_training_size_in_float32():
     assert not torch.allclose(g_ours.transpose(0, 1), g_ref, atol=1e-3, rtol=1e-4)
 
 
+@pytest.mark.parametrize("stride", [1, 2])
+def test_onednn_conv_weight_gradient_under_bfloat16_autocast(stride):
+    """The context network trains its encoders under ``torch.autocast(dtype=bfloat16)`` where the CPU has the kernels
+    (``train_context.json``'s ``train_autocast``). There the swapped-convolution path runs in bfloat16 like
+    nn.Conv3d (the same bfloat16 output) and returns every gradient in its tensor's dtype (float32), each equal to
+    nn.Conv3d's under the same autocast to bfloat16 rounding; the weight gradient transposed in its channel axes
+    is not. (Before this was handled, the backward mixed a float32 input with a bfloat16 gradient and raised.)"""
+    from monai_rigidreg.networks.blocks import OneDNNConv3d
+
+    torch.manual_seed(0)
+    ref = torch.nn.Conv3d(6, 6, 3, stride, 1)
+    ours = OneDNNConv3d(6, 6, 3, stride, 1)
+    ours.load_state_dict(ref.state_dict())
+    x = torch.randn(2, 6, 11, 10, 9, generator=torch.Generator().manual_seed(6), requires_grad=True)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out, want = ours(x), ref(x)
+    assert "SwappedWeightGrad" in type(out.grad_fn).__name__
+    assert out.dtype == want.dtype == torch.bfloat16
+    torch.testing.assert_close(out, want, atol=0.0, rtol=0.0)
+    weights = torch.randn(want.shape, generator=torch.Generator().manual_seed(7))
+    got = torch.autograd.grad((out.float() * weights).sum(), [x, ours.weight, ours.bias])
+    expected = torch.autograd.grad((want.float() * weights).sum(), [x, ref.weight, ref.bias])
+    for a, b in zip(got, expected):
+        assert a.dtype == b.dtype == torch.float32 and a.shape == b.shape
+        scale = float(b.abs().max())
+        torch.testing.assert_close(a, b, atol=1e-2 * scale, rtol=0.0)  # bfloat16 keeps 8 bits
+    assert not torch.allclose(got[1].transpose(0, 1), expected[1], atol=1e-2 * float(expected[1].abs().max()))
+
+
 def test_pointwise_columns_is_the_volume_head_on_columns():
     """A kernel-1 head run on ``[B, C, N]`` columns (the 4 mm level's match weights): the output and the gradients
     (inputs and every weight) are those of the same modules on a ``[B, C, N, 1, 1]`` volume; a channel mix-up (the
