@@ -36,6 +36,7 @@ from monai_rigidreg.core.geometry import (
 )
 from monai_rigidreg.core.image_ops import erode, gradient_magnitude, masked_ncc, pyramid
 from monai_rigidreg.core.warp import warp_volume_params
+from monai_rigidreg.registration.bone_check import bone_agreement
 from monai_rigidreg.registration.calibration import verdict
 from monai_rigidreg.registration.match_region import match_weight, weight_on_grid
 from monai_rigidreg.registration.overlap import OVERLAP_FLAG_BELOW
@@ -53,10 +54,9 @@ if TYPE_CHECKING:
     from monai_rigidreg.registration.state import Background, NetworkRun, RegistrationState
 
 __all__ = ["CONFIDENCE_THRESHOLD", "FLAG_REASON_TEXT", "LOCAL_GAIN_LIMIT", "EDGE_OFFSET_LIMIT", "EDGE_SPACING_MM",
-           "SWAP_AGREE_MM", "edge_offset",
-           "AMBIGUOUS_TWIN_MM",
-           "TISSUE_ON_AIR_LIMIT", "TISSUE_HU", "AIR_HU", "cylindrical_fov_mask", "tissue_on_air", "fov_ncc",
-           "confidence_score", "assess_estimate", "swap_inputs", "ConfidenceStage"]
+           "SWAP_AGREE_MM", "edge_offset", "AMBIGUOUS_TWIN_MM", "TISSUE_ON_AIR_LIMIT", "TISSUE_HU", "AIR_HU",
+           "cylindrical_fov_mask", "tissue_on_air", "fov_ncc", "confidence_score", "assess_estimate", "swap_inputs",
+           "ConfidenceStage"]
 
 logger = logging.getLogger(__name__)
 
@@ -105,8 +105,7 @@ def cylindrical_fov_mask(image: sitk.Image, margin_mm: float = 2.0) -> sitk.Imag
     CBCT scanners reconstruct a cylindrical field of view; outside it a CBCT holds no information, so similarity
     metrics (refinement, confidence) are restricted to this mask.
     """
-    size = np.array(image.GetSize())
-    spacing = np.array(image.GetSpacing())
+    size, spacing = np.array(image.GetSize()), np.array(image.GetSpacing())
     half = (size - 1) / 2.0
     radius_mm = float(min(half[0] * spacing[0], half[1] * spacing[1])) - margin_mm
     yy, xx = np.meshgrid(np.arange(size[1]), np.arange(size[0]), indexing="ij")
@@ -267,11 +266,11 @@ def assess_estimate(
             :mod:`~monai_rigidreg.registration.overlap`).
 
     Returns ``ncc_before``/``ncc_after`` (intensity NCC in the field of view), ``edge_ncc`` (NCC of gradient
-    magnitudes), ``tissue_on_air`` and ``tissue_on_air_deep`` (:func:`tissue_on_air` of the estimate, on every
-    and on deep CBCT air), ``local_gain`` and ``swap_tre_mm`` (see
-    :func:`confidence_score`), ``confidence``, and with ``estimate`` or ``swapped`` also ``swap_params``: the
-    inverse of the swapped estimate, ``[6]`` numpy, in the frame of ``params`` (the caller may score it as an
-    alternative estimate, :data:`SWAP_AGREE_MM`).
+    magnitudes), ``tissue_on_air`` and ``tissue_on_air_deep`` (:func:`tissue_on_air` on every and on deep CBCT air),
+    ``bone_share`` and ``bone_agreement`` (:mod:`~monai_rigidreg.registration.bone_check`), ``local_gain`` and
+    ``swap_tre_mm`` (see :func:`confidence_score`), ``confidence``, and with ``estimate`` or ``swapped`` also
+    ``swap_params``: the inverse of the swapped estimate, ``[6]`` numpy, in the frame of ``params`` (the caller may
+    score it as an alternative, :data:`SWAP_AGREE_MM`).
     """
     p0 = np.asarray(params, dtype=np.float64)
     # edges are compared at about 4 mm (the grid pooled by ``factor``), where the gain threshold was calibrated:
@@ -293,6 +292,7 @@ def assess_estimate(
         fov_in = erode(fov_w[None, None], (2, 2, 2))[0, 0]
         out["tissue_on_air"] = tissue_on_air(fixed_f, moved0, fov_in, hu_range)
         out["tissue_on_air_deep"] = tissue_on_air(fixed_f, moved0, fov_in, hu_range, deep_air_radius(grid.spacing))
+        out["bone_share"], out["bone_agreement"] = bone_agreement(fixed_f, moved0, fov_in, hu_range)
         # away from the field-of-view border: the CBCT's own edge there (data to zero) is no anatomy, and the
         # candidates move it by up to a pooled voxel (erosion radius: that step plus the gradient stencil)
         r = 2 * factor + 1

@@ -898,6 +898,7 @@ def test_the_last_level_bias_degree_follows_the_match_region(fast_pair, shipped_
     # itself is the calibrated one, test_calibration.py)
     sig = whole.details["signals"]
     assert 0.0 <= sig["tissue_on_air"] < 0.02
+    assert {"bone_share", "bone_agreement"} <= set(sig)  # recorded for the calibration (registration.bone_check)
     assert sig["rule_score"] == pytest.approx(confidence_score(sig["local_gain"], sig["swap_tre_mm"],
                                                               swap_counted=sig.get("swap_counted", True),
                                                               tissue_on_air_share=sig["tissue_on_air_deep"],
