@@ -276,13 +276,18 @@ def negative_cases(real_ct_dir: Path, pairs_dir: Path) -> Iterator[CalCase]:
     def first_clinical(ct: str) -> Any:
         return load_clinical_case(pairs_dir / ct / "small_000")
 
-    def other_cbct(source: str) -> tuple[sitk.Image, sitk.Image | None] | None:
-        """A CBCT of ``source``: its first clinical pair's where cached, else its paper pair's."""
+    def other_cbcts(source: str) -> list[tuple[str, sitk.Image, sitk.Image | None]]:
+        """The CBCTs of ``source``: its first paper pair's and its first clinical pair's, each where its data is
+        there (``(variant, cbct, fov)``). Both are cases of their own, so that what a collection contains does not
+        depend on which clinical pairs happen to be cached."""
+        out = []
+        paper = first_paper(source)
+        if paper is not None:
+            out.append(("paper", paper.moving, paper.fov))
         clinical = first_clinical(source)
         if clinical is not None:
-            return clinical.cbct, clinical.fov
-        paper = first_paper(source)
-        return None if paper is None else (paper.moving, paper.fov)
+            out.append(("clinical", clinical.cbct, clinical.fov))
+        return out
 
     none = None
     for ct, other_region, other_patient in NEGATIVE_PARTNERS:
@@ -292,12 +297,10 @@ def negative_cases(real_ct_dir: Path, pairs_dir: Path) -> Iterator[CalCase]:
             continue
         ct_img = paper.fixed if paper is not None else load_volume(paths[0])
         for kind, source in (("other_region", other_region), ("other_patient", other_patient)):
-            other = other_cbct(source) if source else None
-            if other is not None:
-                cbct, fov = other
-                yield CalCase(f"negative/{ct}/{kind}_{source}", "negative", ct, ct_img, _recentred(cbct, ct_img),
-                              None if fov is None else _recentred(fov, ct_img), none, {},
-                              {"kind": kind, "cbct_of": source})
+            for variant, cbct, fov in other_cbcts(source) if source else []:
+                yield CalCase(f"negative/{ct}/{kind}_{source}/{variant}", "negative", ct, ct_img,
+                              _recentred(cbct, ct_img), None if fov is None else _recentred(fov, ct_img), none, {},
+                              {"kind": kind, "cbct_of": source, "cbct": variant})
         paper = first_paper(ct)
         if paper is None:
             continue
