@@ -133,6 +133,26 @@ def test_a_loco_evaluation_refuses_an_unknown_ct_or_a_fold_without_checkpoint(tm
     assert empty.returncode == 2 and "no checkpoint" in empty.stderr and not (tmp_path / "out").exists()
 
 
+def test_the_main_run_evaluation_refuses_a_run_without_checkpoint_or_a_missing_baseline(tmp_path):
+    """``scripts/eval_main_run.sh``: exit status 2 and nothing written (no results folder, nothing in scratch/) for
+    a run folder without a checkpoint, and for a ``BASELINE`` that is not a file."""
+    import os
+    import subprocess
+
+    script = str(REPO / "scripts" / "eval_main_run.sh")
+    scratch_before = sorted(p.name for p in (REPO / "scratch").glob("*")) if (REPO / "scratch").is_dir() else []
+    empty = subprocess.run(["bash", script, str(tmp_path / "run"), str(tmp_path / "out")], capture_output=True,
+                           text=True, timeout=60)
+    assert empty.returncode == 2 and "no checkpoint" in empty.stderr and not (tmp_path / "out").exists()
+    _config_checkpoint(tmp_path / "run", 4)
+    missing = subprocess.run(["bash", script, str(tmp_path / "run"), str(tmp_path / "out")], capture_output=True,
+                             text=True, timeout=60, env={**os.environ, "BASELINE": str(tmp_path / "no.json")})
+    assert missing.returncode == 2 and "no.json is not a file" in missing.stderr
+    assert not (tmp_path / "out").exists()
+    scratch_after = sorted(p.name for p in (REPO / "scratch").glob("*")) if (REPO / "scratch").is_dir() else []
+    assert scratch_after == scratch_before
+
+
 def test_the_training_script_prepares_without_training_and_refuses_a_used_folder_first(tmp_path):
     """``PREPARE_DATA_ONLY=1`` (what a new leave-one-CT-out fold runs before its pretraining): the training script's
     checks and the missing data, then exit 0 with nothing in the run folder; a folder holding a run is refused."""
