@@ -66,6 +66,9 @@ def main() -> None:
     ap.add_argument("--datalist", nargs="+", default=["data/train.json"])
     ap.add_argument("--context", action="store_true", help="the context network's sampler and step (train_context)")
     ap.add_argument("--ct", nargs="*", default=[], help="--context: real CTs as sources too")
+    ap.add_argument("--precision", nargs="+", choices=["config", "float32"], default=["config"],
+                    help="--context: the encoders' training precision, the config's choice for this machine "
+                         "(bfloat16 where the CPU has the kernels) and/or float32; each timed on the same batch")
     ap.add_argument("--items", type=int, default=6, help="datalist items cached")
     ap.add_argument("--samples", type=int, default=12, help="samples timed per measurement")
     ap.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 4])
@@ -170,12 +173,17 @@ def context_throughput(args) -> None:
     criterion = cfg.get_parsed_content("loss", instantiate=True)
     prepare, inferer = RegistrationPrepareBatch(), StagedInferer()
     optimizer = torch.optim.Adam(network.parameters(), lr=1e-5)
-    print("\n| network step (forward + loss + backward + Adam) | batch | s per step | samples per second |")
-    print("|---|---|---|---|")
+    chosen = {m: m.train_autocast for m in network.modules() if hasattr(m, "train_autocast")}
+    print("\n| network step (forward + loss + backward + Adam) | encoders | batch | s per step | samples per second |")
+    print("|---|---|---|---|---|")
     for b in args.batch_sizes:
         inputs, targets = prepare(list_data_collate([sampler.draw(rng) for _ in range(b)]), device="cpu")
-        step = median_step_seconds(network, criterion, inferer, optimizer, inputs, targets, args.samples // b)
-        print(f"| context network, train_context.json's loss | {b} | {step:.3f} | {b / step:.2f} |")
+        for precision in args.precision:
+            for m, autocast in chosen.items():
+                m.train_autocast = autocast if precision == "config" else None
+            label = ", ".join(sorted({str(m.train_autocast or "float32") for m in chosen})) or "float32"
+            step = median_step_seconds(network, criterion, inferer, optimizer, inputs, targets, args.samples // b)
+            print(f"| context network, train_context.json's loss | {label} | {b} | {step:.3f} | {b / step:.2f} |")
     print(f"\nload at the end {os.getloadavg()[0]:.2f}")
 
 
