@@ -2,7 +2,7 @@
 # The main training run measured while it goes on: its newest checkpoint's learned network alone on the held-out CTs
 # (thorax_4dct_phase00_itkelastix, head_tigre_ct), with the commands of the bundle docs' "Where the run stands"
 # (bundles/cbct_ct_rigid/docs/context_network.md):
-#   1. the checkpoint copied to scratch/ (the run keeps only its newest) and exported as a bundle (4 passes, as shipped);
+#   1. the checkpoint copied to scratch/ (the run keeps only its newest), exported as a bundle (4 passes, as shipped);
 #   2. bench_generalisation_gap: 200 draws of the training sampler from the trained-on and from the held-out CTs
 #      (paired against BASELINE, an earlier checkpoint's .json, where given);
 #   3. bench_real_ct: the paper protocol, 21 cases per held-out CT;
@@ -37,7 +37,8 @@ gap_args=()
 python -m benchmarks.accuracy.bench_generalisation_gap "scratch/${name}.pt" --samples 200 --shared "$SHARED" \
     "${gap_args[@]}" --results "$OUT/bench_generalisation_gap_main_e${epoch}_${day}.txt"
 python -m benchmarks.accuracy.bench_real_ct --methods network-regression --num-cases 21 --threads 1 \
-    --ct "$SHARED/thorax_4dct_phase00_itkelastix.nii.gz" "$SHARED/head_tigre_ct.nii.gz" --output-dir bench_out/real_ct_42 --bundle "scratch/${name}" \
+    --ct "$SHARED/thorax_4dct_phase00_itkelastix.nii.gz" "$SHARED/head_tigre_ct.nii.gz" \
+    --output-dir bench_out/real_ct_42 --bundle "scratch/${name}" \
     --results "$OUT/bench_real_ct_heldout_main_e${epoch}_network_alone_${day}.txt"
 python -m benchmarks.accuracy.bench_clinical_geometry --groups small large deformed --cases-per-group 4 \
     --cts thorax_4dct_phase00_itkelastix head_tigre_ct --output-dir bench_out/clinical --threads 1 \

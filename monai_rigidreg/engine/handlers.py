@@ -211,15 +211,14 @@ class TrainingProgressHandler:
         the network."""
         if self.network is None:
             return None
-        modules = self.network.modules() if hasattr(self.network, "modules") else [self.network]
-        return float(any(getattr(m, "train_autocast", None) == "bfloat16" for m in modules))
+        return float(any(getattr(m, "train_autocast", None) == "bfloat16" for m in self.network.modules()))
 
     def _started(self, engine: Any) -> None:
         if self.dataset is not None and hasattr(self.dataset, "set_epoch"):
             self.dataset.set_epoch(engine.state.epoch)
-        if self._bfloat16() is not None:
-            logger.info("training precision of the encoders: %s",
-                        "bfloat16 autocast" if self._bfloat16() else "float32")
+        bfloat16 = self._bfloat16()
+        if bfloat16 is not None:
+            logger.info("training precision of the encoders: %s", "bfloat16 autocast" if bfloat16 else "float32")
         self._last = time.perf_counter()
         self._epoch_start = self._last
         self._samples_at_epoch = self.samples
@@ -251,8 +250,9 @@ class TrainingProgressHandler:
         stats = {"train_samples": float(self.samples), "train_wall_time_s": self.wall_time_s,
                  "train_samples_per_s": (self.samples - self._samples_at_epoch) / elapsed,
                  "train_data_wait_s": self._wait / n, "train_step_s": self._step / n}
-        if self._bfloat16() is not None:
-            stats["train_bfloat16"] = self._bfloat16()
+        bfloat16 = self._bfloat16()
+        if bfloat16 is not None:
+            stats["train_bfloat16"] = bfloat16
         engine.state.metrics.update(stats)
         logger.info("epoch %d: %d samples seen, %.1f h of training, %.2f samples/s this epoch; per iteration "
                     "%.3f s waiting for data, %.3f s in the network step", engine.state.epoch, self.samples,

@@ -2,8 +2,8 @@
 
 At a right pose the CT's bone lands on the brightest voxels of the CBCT; on another patient's anatomy, registered
 as well as it goes, much of it does not (skulls differ in shape and thickness). A CBCT's values are not the CT's
-Hounsfield units (scatter and beam hardening: simulated head CBCTs read the skull at 270-330 HU where the CT reads
-600-800), so the CBCT side is ranked rather than thresholded: :func:`bone_agreement` takes the CT's bone voxels in
+Hounsfield units (scatter and beam hardening read the simulated CBCTs' skull several hundred HU below the CT's), so
+the CBCT side is ranked rather than thresholded: :func:`bone_agreement` takes the CT's bone voxels in
 view (above :data:`BONE_HU`), as many of the CBCT's brightest voxels among the same body voxels, and returns the
 share of the CT's bone among them. Both volumes are smoothed by a 3-voxel box first (CBCT noise). Frames: both on
 one grid in the CT frame, the CBCT resampled through the estimate (as :mod:`~monai_rigidreg.registration.tissue_air`).
@@ -25,9 +25,9 @@ BODY_HU = -300.0
 
 
 def _box3(volume: torch.Tensor) -> torch.Tensor:
-    """``[x, y, z]`` mean over each voxel's 3 x 3 x 3 box (edges replicated), as three sums of shifted slices: on a
-    64^3 grid about 3x faster on CPU than ``F.avg_pool3d`` with ``count_include_pad=False``, the same values away
-    from the grid's outer layer."""
+    """``[x, y, z]`` mean over each voxel's 3 x 3 x 3 box (edges replicated), as three sums of shifted slices instead
+    of ``F.avg_pool3d`` with ``count_include_pad=False`` (the same values away from the grid's outer layer; on a 64^3
+    grid 3.9 against 13 ms on one thread, measured once ad hoc on a loaded 2-core machine)."""
     out = volume
     for dim in range(3):
         n = out.shape[dim]
